@@ -1,0 +1,182 @@
+"""Linear tetrahedral elasticity assembled once on the host with scikit-fem.
+
+The stiffness is kept as parameter-free blocks so that everything after assembly is a (JAX,
+differentiable) function of the material:
+
+    K(E, nu) = lambda(E, nu) K_lam + mu(E, nu) K_mu,     M(rho) = rho M1,
+
+with ``K_lam = int div(u) div(v)``, ``K_mu = int 2 eps(u) : eps(v)`` and ``M1 = int u . v``.
+
+Degrees of freedom are node-major, ``dof = 3 * node + component``; for P2 the nodes are the mesh
+vertices followed by the edge midpoints (scikit-fem's ordering). Units: mm, N, MPa, tonne.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import skfem
+from skfem.helpers import ddot, div, dot, sym_grad
+
+from jsnap._geometry import TetMesh
+
+__all__ = ["Assembly", "assemble", "lame", "solve_static", "traction_load"]
+
+_ELEMENTS = {"P1": skfem.ElementTetP1, "P2": skfem.ElementTetP2}
+
+
+def lame(E, nu):
+    """Lamé parameters (lambda, mu) in MPa from Young's modulus E (MPa) and Poisson's ratio.
+
+    Works on floats, numpy and JAX arrays alike (it is used on both sides).
+    """
+    lam = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+    mu = E / (2.0 * (1.0 + nu))
+    return lam, mu
+
+
+@skfem.BilinearForm
+def _k_lam(u, v, w):
+    return div(u) * div(v)
+
+
+@skfem.BilinearForm
+def _k_mu(u, v, w):
+    return 2.0 * ddot(sym_grad(u), sym_grad(v))
+
+
+@skfem.BilinearForm
+def _m1(u, v, w):
+    return dot(u, v)
+
+
+@dataclass(frozen=True)
+class Assembly:
+    """The parameter-free FEM blocks of one mesh and element (host side, float64).
+
+    Attributes:
+        element: ``"P1"`` or ``"P2"``.
+        mesh: the tetrahedral mesh (vertices and 4-node cells).
+        nodes: (N, 3) positions of all finite-element nodes, mm (vertices, then P2 edge nodes).
+        cells: (m, 4) or (m, 10) node indices per element; the 10-node order is VTK's tetra10
+            (4 vertices, then edges 01, 12, 02, 03, 13, 23).
+        K_lam, K_mu, M1: (3N, 3N) CSR matrices sharing one sparsity pattern.
+        fixed: (nb,) sorted dofs clamped at the base (every dof of every node on z = 0).
+        free: (nf,) sorted remaining dofs.
+    """
+
+    element: str
+    mesh: TetMesh
+    nodes: np.ndarray
+    cells: np.ndarray
+    K_lam: sp.csr_matrix
+    K_mu: sp.csr_matrix
+    M1: sp.csr_matrix
+    fixed: np.ndarray
+    free: np.ndarray
+    basis: skfem.CellBasis
+
+    @property
+    def n_dof(self) -> int:
+        return 3 * self.nodes.shape[0]
+
+    def stiffness(self, E: float, nu: float) -> sp.csr_matrix:
+        """K(E, nu) = lambda K_lam + mu K_mu, (3N, 3N), N/mm."""
+        lam, mu = lame(E, nu)
+        return (lam * self.K_lam + mu * self.K_mu).tocsr()
+
+    def probes(self, points: np.ndarray) -> sp.csr_matrix:
+        """(P, N) interpolation matrix from nodal values to values at ``points`` (P, 3), mm."""
+        return self._scalar_basis().probes(np.asarray(points, dtype=float).T).tocsr()
+
+    def _scalar_basis(self) -> skfem.CellBasis:
+        return skfem.Basis(self.basis.mesh, _ELEMENTS[self.element]())
+
+
+def _same_pattern(*mats: sp.spmatrix) -> list[sp.csr_matrix]:
+    """Put matrices on the union of their sparsity patterns, so they combine entrywise."""
+    union = sum(abs(m) for m in mats).tocoo()
+    row, col = union.row, union.col
+    out = []
+    for m in mats:
+        vals = np.asarray(m.tocsr()[row, col]).ravel()
+        z = sp.csr_matrix((vals, (row, col)), shape=m.shape)
+        z.sort_indices()
+        out.append(z)
+    return out
+
+
+def assemble(mesh: TetMesh, element: str = "P2") -> Assembly:
+    """Assemble K_lam, K_mu, M1 for ``mesh`` with P1 or P2 tetrahedra, clamped at z = 0.
+
+    Args:
+        mesh: tetrahedral mesh in mm with its base nodes marked.
+        element: ``"P1"`` (linear; locks in bending on coarse meshes) or ``"P2"`` (quadratic).
+    """
+    if element not in _ELEMENTS:
+        raise ValueError(f"solver.element = {element!r}: must be one of {', '.join(_ELEMENTS)}")
+    skmesh = skfem.MeshTet(mesh.points.T.copy(), mesh.cells.T.copy())
+    basis = skfem.Basis(skmesh, skfem.ElementVector(_ELEMENTS[element]()))
+    K_lam = _k_lam.assemble(basis)
+    K_mu = _k_mu.assemble(basis)
+    M1 = _m1.assemble(basis)
+    K_lam, K_mu, M1 = _same_pattern(K_lam, K_mu, M1)
+
+    n_nodes = basis.N // 3
+    nodes = basis.doflocs[:, 0::3].T.copy()
+    # Node-major dof numbering is what everything downstream relies on: check, never assume.
+    if not np.array_equal(basis.nodal_dofs[0], 3 * np.arange(skmesh.p.shape[1])):
+        raise RuntimeError("unexpected scikit-fem dof ordering (expected node-major)")
+    scalar = skfem.Basis(skmesh, _ELEMENTS[element]())
+    cells = scalar.element_dofs.T.copy()  # (m, 4) or (m, 10), skfem edge order = VTK tetra10
+
+    base = np.zeros(n_nodes, dtype=bool)
+    base[np.isclose(nodes[:, 2], 0.0, atol=1e-9)] = True
+    fixed = np.flatnonzero(np.repeat(base, 3))
+    free = np.flatnonzero(~np.repeat(base, 3))
+    return Assembly(element, mesh, nodes, cells, K_lam, K_mu, M1, fixed, free, basis)
+
+
+def traction_load(asm: Assembly, where, traction) -> np.ndarray:
+    """Consistent nodal load (3N,) in N of a uniform traction (3,) in MPa on boundary facets.
+
+    Args:
+        where: predicate ``f(x) -> bool array`` on facet midpoints (x: (3, k) in mm).
+        traction: (3,) surface traction, MPa = N/mm^2.
+    """
+    skmesh = asm.basis.mesh
+    facets = skmesh.facets_satisfying(where, boundaries_only=True)
+    if len(facets) == 0:
+        raise ValueError("traction_load: no boundary facet satisfies the predicate")
+    fb = skfem.FacetBasis(skmesh, asm.basis.elem, facets=facets)
+    t = np.asarray(traction, dtype=float)
+
+    @skfem.LinearForm
+    def load(v, w):
+        return t[0] * v[0] + t[1] * v[1] + t[2] * v[2]
+
+    return load.assemble(fb)
+
+
+def solve_static(asm: Assembly, E: float, nu: float, f: np.ndarray) -> np.ndarray:
+    """Static displacement u (3N,) in mm for nodal load f (3N,) in N, base clamped."""
+    K = asm.stiffness(E, nu)
+    u = np.zeros(asm.n_dof)
+    free = asm.free
+    Kff = K[free][:, free].tocsc()
+    u[free] = sp.linalg.spsolve(Kff, f[free])
+    return u
+
+
+def base_reaction(asm: Assembly, E: float, nu: float, u: np.ndarray, f: np.ndarray):
+    """Static reaction at the base: force (3,) in N and moment (3,) in N·mm about the base
+    centroid, exerted by the support on the body (like a FEM code's RF)."""
+    K = asm.stiffness(E, nu)
+    r = (K @ u - f)[asm.fixed]
+    nodes = asm.fixed[0::3] // 3
+    forces = r.reshape(-1, 3)
+    pos = asm.nodes[nodes]
+    centre = pos.mean(axis=0)
+    return forces.sum(axis=0), np.cross(pos - centre, forces).sum(axis=0)

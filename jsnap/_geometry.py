@@ -1,0 +1,641 @@
+"""Connector geometry, structured tetrahedral meshing, mesh quality and VTU export (host side).
+
+The canonical cantilever (DESIGN.md §3) is a section polygon in the x–z plane extruded over the
+width ``y ∈ [−b/2, b/2]``; its root face ``z = 0`` is the fixed base. Everything here is plain
+numpy on the host, in float64. Units: mm (lengths), mm² (areas), mm³ (volumes), degrees
+(angles).
+
+Meshing (:func:`mesh_cantilever`): the section is cut into structured quadrilateral blocks,
+each filled by transfinite (Coons) interpolation of its sides, extruded in y into hexahedra, and
+every hexahedron split into six tetrahedra along its logical main diagonal (Kuhn/Freudenthal).
+The blocks are
+  * A, the arm ``z ∈ [0, L]``: (0,0) (h,0) (h_tip,L) (0,L);
+  * B1, a band of height ``flat`` on top of the line z = L continued along the retention face,
+    (0,L) (h_tip,L) (h_tip+y_u, z_retention) up to (h_tip+y_u, z_flat_end) (0, L+flat): its
+    right side is the flat (absent when flat = 0);
+  * B2, the rest: body and hook above the band, closed by the lead ramp and the top face.
+A single hook block (h_tip,L) (h_tip+y_u,z_retention) (h_tip+y_u,z_flat_end) (h_tip,z_top) would
+put the short flat opposite the 1.5 mm tall side shared with the body, squeezing every z-row of
+the hook 13:1 into the flat (mean ratio below 0.01 at hook_size 0.05); with the band the flat
+faces an equally short side. All blocks run u along +x (left to right along their bottom side), v up
+and w along +y, so every shared quadrilateral face is cut along the same diagonal from both
+sides and the mesh is conforming.
+
+Mesh quality is the mean-ratio measure ``q = 12 (3|V|)^(2/3) / Σ l_ij²`` (1 for the regular
+tetrahedron, 0 for a flat one, 0.76 for a cube's Kuhn tetrahedra), see
+:func:`check_quality`.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+__all__ = [
+    "Cantilever",
+    "MeshQualityError",
+    "TetMesh",
+    "check_quality",
+    "mean_ratio",
+    "mesh_box",
+    "mesh_cantilever",
+    "signed_volumes",
+    "write_vtu",
+    "write_vtu_series",
+]
+
+# Below this |V| / l_max³ an element is "degenerate" (a regular tetrahedron has 0.118, the
+# worst element the structured meshes here produce has ~1e-3): well above round-off of the
+# volume computation (~1e-16) and far below anything a mesher should produce.
+_DEGENERATE_RTOL = 1e-9
+
+# Edges of a tetrahedron as vertex pairs (VTK tetra10 order of the edge midpoints).
+_TET_EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
+
+# Faces of a tetrahedron whose right-hand normal points out of a positively oriented tet
+# (signed volume det[p1-p0, p2-p0, p3-p0] / 6 > 0): each face omits one vertex.
+_TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
+
+
+# --------------------------------------------------------------------------------------------
+# Geometry
+# --------------------------------------------------------------------------------------------
+
+
+def _is_real(value) -> bool:
+    return isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool)
+
+
+def _cot(degrees: float) -> float:
+    """cot of an angle in (0, 90] degrees; exactly 0 at 90 (a square face adds no height) and
+    inf where tan underflows (validate() turns that into an error naming the key)."""
+    if degrees == 90:
+        return 0.0
+    t = math.tan(math.radians(degrees))
+    return 1.0 / t if t > 0 else math.inf
+
+
+@dataclass(frozen=True)
+class Cantilever:
+    """The canonical cantilever snap hook (DESIGN.md §3). Lengths in mm, angles in degrees.
+
+    Attributes:
+        length: L, arm length from the root (z = 0) to the retention face (z = L).
+        thickness: h, arm thickness in x at the root.
+        width: b, extrusion in y, the arm spans y ∈ [−b/2, b/2].
+        undercut: y_u, how far the hook protrudes in +x beyond the outer face at z = L.
+        lead_angle: α ∈ (0, 90), angle of the lead ramp to the insertion direction (−z).
+        return_angle: α' ∈ (0, 90], angle of the retention face to the insertion direction;
+            90 is a square face (permanent latch), smaller angles make the joint separable.
+        flat: length (≥ 0) of the land at x = h_tip + y_u between retention face and ramp.
+        tip_thickness: h_tip, thickness at z = L (the arm tapers linearly); None means h.
+
+    The section polygon (x–z plane, counter-clockwise) is always simple for values that pass
+    :meth:`validate`: the arm is a trapezoid below z = L, the body above it the rectangle
+    [0, h_tip] × [L, z_top], and the hook a trapezoid with vertical parallel sides x = h_tip
+    (z ∈ [L, z_top]) and x = h_tip + y_u (z ∈ [z_retention, z_flat_end]), where
+    L ≤ z_retention ≤ z_flat_end < z_top. So only ranges need checking.
+    """
+
+    length: float
+    thickness: float
+    width: float
+    undercut: float
+    lead_angle: float
+    return_angle: float
+    flat: float
+    tip_thickness: float | None = None
+
+    def __post_init__(self):
+        self.validate()
+
+    # -- derived sizes ------------------------------------------------------------------------
+
+    @property
+    def h_tip(self) -> float:
+        """Arm thickness at z = L, mm."""
+        return float(self.thickness if self.tip_thickness is None else self.tip_thickness)
+
+    @property
+    def z_retention(self) -> float:
+        """z of the top of the retention face (its outer edge), mm; L when α' = 90°."""
+        return self.length + self.undercut * _cot(self.return_angle)
+
+    @property
+    def z_flat_end(self) -> float:
+        """z where the flat ends and the lead ramp starts, mm."""
+        return self.z_retention + self.flat
+
+    @property
+    def z_top(self) -> float:
+        """z of the arm's flat top face (where the lead ramp meets the outer face), mm."""
+        return self.z_flat_end + self.undercut * _cot(self.lead_angle)
+
+    # -- section ------------------------------------------------------------------------------
+
+    def section(self) -> np.ndarray:
+        """(7, 2) section polygon (x, z) in mm, counter-clockwise, starting at the root origin."""
+        h, ht, yu, L = self.thickness, self.h_tip, self.undercut, self.length
+        return np.array(
+            [
+                [0.0, 0.0],
+                [h, 0.0],
+                [ht, L],
+                [ht + yu, self.z_retention],
+                [ht + yu, self.z_flat_end],
+                [ht, self.z_top],
+                [0.0, self.z_top],
+            ],
+            dtype=np.float64,
+        )
+
+    def section_area(self) -> float:
+        """Area of the section polygon, mm² (shoelace formula)."""
+        p = self.section()
+        x, z = p[:, 0], p[:, 1]
+        return 0.5 * float(np.sum(x * np.roll(z, -1) - np.roll(x, -1) * z))
+
+    def section_perimeter(self) -> float:
+        """Perimeter of the section polygon, mm."""
+        p = self.section()
+        return float(np.sum(np.linalg.norm(np.roll(p, -1, axis=0) - p, axis=1)))
+
+    def volume(self) -> float:
+        """Exact volume of the arm, mm³ (section area × width)."""
+        return self.section_area() * self.width
+
+    def surface_area(self) -> float:
+        """Exact surface area of the arm including the base face, mm²."""
+        return 2.0 * self.section_area() + self.section_perimeter() * self.width
+
+    # -- validation ---------------------------------------------------------------------------
+
+    def validate(self) -> None:
+        """Check ranges; raise ``ValueError`` naming the scene key, e.g.
+        ``connector.undercut = -0.2: must be > 0``."""
+
+        def fail(key, value, why):
+            shown = value.item() if isinstance(value, np.generic) else value
+            raise ValueError(f"connector.{key} = {shown!r}: {why}")
+
+        keys = ("length", "thickness", "tip_thickness", "width", "undercut")
+        keys += ("lead_angle", "return_angle", "flat")
+        for key in keys:
+            value = getattr(self, key)
+            if key == "tip_thickness" and value is None:
+                continue
+            if not _is_real(value) or not math.isfinite(value):
+                fail(key, value, "must be a finite number")
+        for key in ("length", "thickness", "width", "undercut"):
+            if getattr(self, key) <= 0:
+                fail(key, getattr(self, key), "must be > 0")
+        t = self.tip_thickness
+        if t is not None and not 0 < t <= 4 * self.thickness:
+            fail("tip_thickness", t, f"must be in (0, 4 * thickness] = (0, {4 * self.thickness:g}]")
+        if not 0 < self.lead_angle < 90:
+            fail("lead_angle", self.lead_angle, "must be in (0, 90) degrees")
+        if not 0 < self.return_angle <= 90:
+            fail("return_angle", self.return_angle, "must be in (0, 90] degrees")
+        if self.flat < 0:
+            fail("flat", self.flat, "must be >= 0")
+        # What does break: angles so close to 0 that y_u / tan(angle) overflows to inf, or so
+        # close to 90 that the ramp has no height left in floating point (z_top == z_flat_end).
+        if not math.isfinite(self.z_top):
+            key = "return_angle" if not math.isfinite(self.z_retention) else "lead_angle"
+            fail(key, getattr(self, key), "too close to 0 degrees: the hook is infinitely tall")
+        if not self.z_top > self.z_flat_end:
+            fail("lead_angle", self.lead_angle, "too close to 90 degrees: the lead ramp vanishes")
+
+
+# --------------------------------------------------------------------------------------------
+# Tetrahedral meshes
+# --------------------------------------------------------------------------------------------
+
+
+def signed_volumes(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """(m,) signed volumes in mm³ of tetrahedra ``cells`` (m, 4) over ``points`` (n, 3);
+    positive when (p1 − p0, p2 − p0, p3 − p0) is a right-handed frame."""
+    p = np.asarray(points, dtype=np.float64)[np.asarray(cells)[:, :4]]
+    d = p[:, 1:] - p[:, :1]
+    return np.einsum("ij,ij->i", d[:, 0], np.cross(d[:, 1], d[:, 2])) / 6.0
+
+
+def mean_ratio(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """(m,) mean-ratio quality ``12 (3 V)^(2/3) / Σ l_ij²`` of tetrahedra (m, 4).
+
+    Dimensionless, 1 for the regular tetrahedron, → 0 for a flat one, negative for an inverted
+    one (it keeps the sign of the volume). A cube's Kuhn tetrahedra score 0.76.
+    """
+    p = np.asarray(points, dtype=np.float64)[np.asarray(cells)[:, :4]]
+    vol = signed_volumes(points, cells)
+    e = p[:, _TET_EDGES[:, 1]] - p[:, _TET_EDGES[:, 0]]
+    sum_l2 = np.einsum("ijk,ijk->i", e, e)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = 12.0 * np.cbrt(3.0 * vol) ** 2 * np.sign(vol) / sum_l2
+    return np.where(sum_l2 > 0, q, 0.0)
+
+
+class MeshQualityError(ValueError):
+    """A mesh has an inverted, degenerate or badly shaped element (the message names it)."""
+
+
+def check_quality(points: np.ndarray, cells: np.ndarray, min_quality: float = 0.02) -> None:
+    """Raise :class:`MeshQualityError` naming the first bad tetrahedron, else return None.
+
+    An element is, in this order of precedence:
+      * degenerate: ``|V| <= 1e-9 · l_max³`` (l_max its longest edge);
+      * inverted: signed volume ``V < 0`` (node order not right-handed);
+      * poor quality: mean ratio (see :func:`mean_ratio`) below ``min_quality``.
+    The first element (lowest index) with any defect is reported, with its four node indices
+    and the offending measure, plus the count of bad elements.
+
+    Args:
+        points: (n, 3) node positions, mm.
+        cells: (m, 4) node indices (extra columns, e.g. tetra10 edge nodes, are ignored).
+        min_quality: threshold on the mean ratio, in (0, 1).
+    """
+    cells = np.asarray(cells)
+    vol = signed_volumes(points, cells)
+    p = np.asarray(points, dtype=np.float64)[cells[:, :4]]
+    e = p[:, _TET_EDGES[:, 1]] - p[:, _TET_EDGES[:, 0]]
+    l_max = np.sqrt(np.max(np.einsum("ijk,ijk->ij", e, e), axis=1))
+    q = mean_ratio(points, cells)
+    degenerate = np.abs(vol) <= _DEGENERATE_RTOL * l_max**3
+    inverted = ~degenerate & (vol < 0)
+    poor = ~degenerate & ~inverted & (q < min_quality)
+    bad = np.flatnonzero(degenerate | inverted | poor)
+    if bad.size == 0:
+        return
+    i = int(bad[0])
+    where = f"element {i} (nodes [{' '.join(str(int(n)) for n in cells[i, :4])}])"
+    if degenerate[i]:
+        what = f"is degenerate: signed volume {vol[i]:.3e} mm^3 with longest edge {l_max[i]:.3e} mm"
+    elif inverted[i]:
+        what = f"is inverted: signed volume {vol[i]:.3e} mm^3"
+    else:
+        what = f"has poor quality: mean ratio {q[i]:.3e} < {min_quality:g}"
+    more = f" ({bad.size} bad elements in all)" if bad.size > 1 else ""
+    raise MeshQualityError(f"{where} {what}{more}")
+
+
+@dataclass(frozen=True, eq=False)
+class TetMesh:
+    """A linear tetrahedral mesh in mm.
+
+    Attributes:
+        points: (n, 3) float64 node positions, mm.
+        cells: (m, 4) int64 node indices, positively oriented (signed volume > 0).
+        base_nodes: (k,) int64 sorted indices of the nodes on the fixed base z = 0.
+    """
+
+    points: np.ndarray
+    cells: np.ndarray
+    base_nodes: np.ndarray
+
+    def __post_init__(self):
+        # Coerce once so downstream code can rely on the dtypes (eq=False: arrays have no
+        # single truth value, identity is the only sensible equality).
+        object.__setattr__(self, "points", np.asarray(self.points, dtype=np.float64))
+        object.__setattr__(self, "cells", np.asarray(self.cells, dtype=np.int64))
+        object.__setattr__(self, "base_nodes", np.asarray(self.base_nodes, dtype=np.int64))
+        if self.points.ndim != 2 or self.points.shape[1] != 3:
+            raise ValueError(f"points must be (n, 3), got {self.points.shape}")
+        if self.cells.ndim != 2 or self.cells.shape[1] != 4:
+            raise ValueError(f"cells must be (m, 4), got {self.cells.shape}")
+
+    def volumes(self) -> np.ndarray:
+        """(m,) element volumes, mm³."""
+        return signed_volumes(self.points, self.cells)
+
+    def boundary_faces(self) -> np.ndarray:
+        """(f, 3) int64 boundary triangles, ordered so the right-hand normal points outwards."""
+        faces = self.cells[:, _TET_FACES].reshape(-1, 3)
+        _, first, counts = np.unique(
+            np.sort(faces, axis=1), axis=0, return_index=True, return_counts=True
+        )
+        return faces[np.sort(first[counts == 1])]
+
+    def boundary_face_areas(self) -> np.ndarray:
+        """(f,) areas of :meth:`boundary_faces`, mm²."""
+        p = self.points[self.boundary_faces()]
+        return 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+
+
+def _ndiv(length: float, size: float) -> int:
+    # The small relative slack keeps e.g. 1.2 / 0.6 from giving 3 by round-off.
+    return max(1, math.ceil(length / size * (1.0 - 1e-12)))
+
+
+def _polyline(vertices, counts) -> np.ndarray:
+    """(1 + Σ counts, 2) nodes along the straight segments between ``vertices`` (k, 2), segment s
+    divided uniformly into ``counts[s]`` parts. The vertices themselves are copied exactly, so
+    blocks built from the same vertices agree bit for bit on their shared nodes."""
+    vertices = np.asarray(vertices, dtype=np.float64)
+    out = [vertices[:1]]
+    for a, b, n in zip(vertices[:-1], vertices[1:], counts, strict=True):
+        t = (np.arange(1, n + 1) / n)[:, None]
+        seg = a + t * (b - a)
+        seg[-1] = b
+        out.append(seg)
+    return np.concatenate(out)
+
+
+def _arc_fractions(nodes: np.ndarray) -> np.ndarray:
+    """(k,) cumulative arc length along a polyline of nodes (k, 2), normalised to [0, 1]."""
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(nodes, axis=0), axis=1))])
+    return s / s[-1]
+
+
+def _tfi(bottom, top, left, right) -> np.ndarray:
+    """(nu+1, nv+1, 2) nodes of a block by transfinite (Coons) interpolation of its sides.
+
+    ``bottom``/``top`` (nu+1, 2) run in +u, ``left``/``right`` (nv+1, 2) in +v, and meet at the
+    corners. Interior nodes blend the sides (with u, v the arc-length fractions along bottom
+    and left); the boundary nodes are copied from the sides exactly.
+    """
+    u = _arc_fractions(bottom)[:, None, None]
+    v = _arc_fractions(left)[None, :, None]
+    b, t = bottom[:, None], top[:, None]
+    l, r = left[None, :], right[None, :]
+    c00, c10, c01, c11 = bottom[0], bottom[-1], top[0], top[-1]
+    grid = (1 - v) * b + v * t + (1 - u) * l + u * r
+    grid -= (1 - u) * (1 - v) * c00 + u * (1 - v) * c10 + (1 - u) * v * c01 + u * v * c11
+    grid[:, 0], grid[:, -1], grid[0, :], grid[-1, :] = bottom, top, left, right
+    return grid
+
+
+# Kuhn/Freudenthal split: one tetrahedron per axis order, each a monotone path from logical
+# corner (0,0,0) to (1,1,1). Every quad face is then cut along its (min, max) logical diagonal,
+# so neighbouring hexahedra whose shared edges run the same way logically agree on the cut.
+_KUHN = []
+for _perm in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
+    _c = [0, 0, 0]
+    _path = [tuple(_c)]
+    for _ax in _perm:
+        _c[_ax] = 1
+        _path.append(tuple(_c))
+    _KUHN.append(_path)
+_KUHN = np.array(_KUHN)  # (6, 4, 3) logical offsets (du, dv, dw)
+
+
+def _extrude(grids: list[np.ndarray], y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Merge structured section blocks, extrude them along y and split into tetrahedra.
+
+    Args:
+        grids: per block an (nu+1, nv+1, 2) array of section nodes (x, z), mm. Nodes on a
+            shared block side must be bitwise equal in both blocks (they are merged exactly).
+        y: (ny+1,) increasing y levels, mm.
+
+    Returns:
+        points (n2 (ny+1), 3), node id = id2d + n2 * k, and positively oriented cells (m, 4).
+    """
+    flat = np.concatenate([g.reshape(-1, 2) for g in grids])
+    nodes2d, inverse = np.unique(flat, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    n2, ny = nodes2d.shape[0], y.size - 1
+    points = np.empty((n2 * (ny + 1), 3))
+    points[:, 0] = np.tile(nodes2d[:, 0], ny + 1)
+    points[:, 1] = np.repeat(y, n2)
+    points[:, 2] = np.tile(nodes2d[:, 1], ny + 1)
+    cells, offset = [], 0
+    for g in grids:
+        nu, nv = g.shape[0] - 1, g.shape[1] - 1
+        ids = inverse[offset : offset + (nu + 1) * (nv + 1)].reshape(nu + 1, nv + 1)
+        offset += ids.size
+        i, j, k = (a.ravel() for a in np.meshgrid(*map(np.arange, (nu, nv, ny)), indexing="ij"))
+        for path in _KUHN:
+            cells.append(np.stack([ids[i + a, j + b] + n2 * (k + c) for a, b, c in path], axis=1))
+    cells = np.concatenate(cells).astype(np.int64)
+    # Orientation depends on the block map (u, v, w) -> (x, z, y) and on the axis order.
+    neg = signed_volumes(points, cells) < 0
+    cells[neg] = cells[neg][:, [0, 2, 1, 3]]
+    return points, cells
+
+
+def _finish(points: np.ndarray, cells: np.ndarray, min_quality: float) -> TetMesh:
+    check_quality(points, cells, min_quality)
+    base = np.flatnonzero(points[:, 2] == 0.0).astype(np.int64)
+    return TetMesh(points=points, cells=cells, base_nodes=base)
+
+
+def mesh_cantilever(
+    geom: Cantilever, size: float, hook_size: float | None = None, min_quality: float = 0.02
+) -> TetMesh:
+    """Structured, conforming tetrahedral mesh of the cantilever arm (see the module docstring).
+
+    Divisions: a side of length l gets ``max(1, ceil(l / s))`` parts and a block the larger
+    count of two opposite sides, with ``s = size`` in the arm (z < L) and across the body
+    (x ∈ [0, h_tip]) above it, and ``s = hook_size`` along the retention face, the flat, the
+    ramp and in z above L. Below z = L the mesh does not depend on ``hook_size`` (unless the
+    width rule below adds layers). The width gets
+    ``max(ceil(b / size), ceil(b / (10 hook_size)))`` layers: hook elements are at most 10:1
+    needles (a 20:1 needle's mean ratio is 0.035, too close to the 0.02 threshold).
+
+    Args:
+        geom: the cantilever.
+        size: target element edge length in the arm, mm.
+        hook_size: target edge length at the hook (z ≥ L), mm; default ``size``.
+        min_quality: mean-ratio threshold passed to :func:`check_quality`.
+
+    Returns:
+        The mesh, checked with :func:`check_quality` (raises :class:`MeshQualityError`).
+    """
+    hook_size = size if hook_size is None else hook_size
+    for name, value in (("size", size), ("hook_size", hook_size)):
+        if not (_is_real(value) and math.isfinite(value) and value > 0):
+            raise ValueError(f"{name} = {value!r}: must be a finite number > 0")
+    p = geom.section()
+    h, ht, L, zt, flat = geom.thickness, geom.h_tip, geom.length, geom.z_top, geom.flat
+    root, root_out, tip_out, ret_out, flat_end, ramp_top, top_in = p
+    tip_in = np.array([0.0, L])
+
+    def dist(a, b):
+        return float(np.linalg.norm(b - a))
+
+    # A: the arm, z in [0, L].
+    nu_a = max(_ndiv(h, size), _ndiv(ht, size))
+    nv_a = max(_ndiv(L, size), _ndiv(dist(root_out, tip_out), size))
+    arm = _tfi(
+        _polyline([root, root_out], [nu_a]),
+        _polyline([tip_in, tip_out], [nu_a]),
+        _polyline([root, tip_in], [nv_a]),
+        _polyline([root_out, tip_out], [nv_a]),
+    )
+    grids = [arm]
+    # The section's line z = L continued along the retention face; x-divisions of the blocks
+    # above: the arm's across the body, hook_size along the retention face.
+    n_ret = _ndiv(dist(tip_out, ret_out), hook_size)
+    base = _polyline([tip_in, tip_out, ret_out], [nu_a, n_ret])
+    if flat > 0:
+        # B1: the band of height `flat` above that line (body and hook base, ending in the
+        # flat). Cutting here keeps the short flat opposite an equally short side; a single
+        # hook block would squeeze all of the hook's z-divisions into the flat.
+        n_f = _ndiv(flat, hook_size)
+        dz = flat * np.arange(n_f + 1) / n_f
+        band = base[:, None, :] + np.stack([np.zeros_like(dz), dz], axis=1)[None]
+        band[:, -1, 1] = base[:, 1] + flat
+        band[-1, -1] = flat_end  # bitwise the section's vertex
+        grids.append(band)
+        base = band[:, -1]
+    # B2: everything above, bounded by the ramp on the right and the top face z = z_top; its
+    # top side takes the bottom side's arc-length fractions so the columns stay straight-ish.
+    nv_b = max(_ndiv(zt - base[0, 1], hook_size), _ndiv(dist(flat_end, ramp_top), hook_size))
+    top = np.stack([_arc_fractions(base) * ht, np.full(base.shape[0], zt)], axis=1)
+    top[-1], top[0] = ramp_top, top_in
+    grids.append(
+        _tfi(
+            base,
+            top,
+            _polyline([base[0], top_in], [nv_b]),
+            _polyline([flat_end, ramp_top], [nv_b]),
+        )
+    )
+    ny = max(_ndiv(geom.width, size), _ndiv(geom.width, 10.0 * hook_size))
+    y = np.linspace(-0.5 * geom.width, 0.5 * geom.width, ny + 1)
+    points, cells = _extrude(grids, y)
+    return _finish(points, cells, min_quality)
+
+
+def mesh_box(
+    lx: float,
+    ly: float,
+    lz: float,
+    size: float | None = None,
+    divisions: tuple[int, int, int] | None = None,
+    min_quality: float = 0.02,
+) -> TetMesh:
+    """Structured tetrahedral mesh of the straight arm x ∈ [0, lx], y ∈ [−ly/2, ly/2],
+    z ∈ [0, lz] (mm), base z = 0.
+
+    Args:
+        lx, ly, lz: box sizes, mm.
+        size: target edge length, mm (``ceil(l / size)`` divisions per axis).
+        divisions: (nx, ny, nz) hexahedra per axis; overrides ``size``.
+        min_quality: passed to :func:`check_quality`.
+    """
+    for name, value in (("lx", lx), ("ly", ly), ("lz", lz)):
+        if not (_is_real(value) and math.isfinite(value) and value > 0):
+            raise ValueError(f"{name} = {value!r}: must be a finite number > 0")
+    if divisions is None:
+        if size is None:
+            raise ValueError("mesh_box needs size or divisions")
+        divisions = (_ndiv(lx, size), _ndiv(ly, size), _ndiv(lz, size))
+    nx, ny, nz = (int(d) for d in divisions)
+    if min(nx, ny, nz) < 1:
+        raise ValueError(f"divisions = {divisions!r}: must all be >= 1")
+    c = np.array([[0.0, 0.0], [lx, 0.0], [lx, lz], [0.0, lz]])
+    grid = _tfi(
+        _polyline([c[0], c[1]], [nx]),
+        _polyline([c[3], c[2]], [nx]),
+        _polyline([c[0], c[3]], [nz]),
+        _polyline([c[1], c[2]], [nz]),
+    )
+    points, cells = _extrude([grid], np.linspace(-0.5 * ly, 0.5 * ly, ny + 1))
+    return _finish(points, cells, min_quality)
+
+
+# --------------------------------------------------------------------------------------------
+# VTU export (ParaView)
+# --------------------------------------------------------------------------------------------
+
+_VTK_TET = {4: "tetra", 10: "tetra10"}
+
+
+def write_vtu(
+    path: str | os.PathLike,
+    points: np.ndarray,
+    cells: np.ndarray,
+    point_data: dict[str, np.ndarray] | None = None,
+    cell_data: dict[str, np.ndarray] | None = None,
+) -> Path:
+    """Write a tetrahedral mesh to a VTU file (via meshio) and return its path.
+
+    Args:
+        path: output file, ``.vtu``.
+        points: (n, 3) node positions, mm.
+        cells: (m, 4) linear tetrahedra (``tetra``) or (m, 10) quadratic ones (``tetra10``,
+            VTK node order: 4 vertices, then the midpoints of edges 01, 12, 02, 03, 13, 23).
+        point_data: name -> (n,) or (n, k) arrays.
+        cell_data: name -> (m,) or (m, k) arrays.
+    """
+    import meshio  # build-layer dependency; keep `import jsnap._geometry` light
+
+    points = np.asarray(points, dtype=np.float64)
+    cells = np.asarray(cells, dtype=np.int64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must be (n, 3), got {points.shape}")
+    if cells.ndim != 2 or cells.shape[1] not in _VTK_TET:
+        raise ValueError(f"cells must be (m, 4) or (m, 10), got {cells.shape}")
+    for name, data in (point_data or {}).items():
+        if np.shape(data)[0] != points.shape[0]:
+            raise ValueError(
+                f"point_data[{name!r}] has {np.shape(data)[0]} rows, expected {points.shape[0]}"
+            )
+    for name, data in (cell_data or {}).items():
+        if np.shape(data)[0] != cells.shape[0]:
+            raise ValueError(
+                f"cell_data[{name!r}] has {np.shape(data)[0]} rows, expected {cells.shape[0]}"
+            )
+    mesh = meshio.Mesh(
+        points,
+        [(_VTK_TET[cells.shape[1]], cells)],
+        point_data={k: np.asarray(v) for k, v in (point_data or {}).items()},
+        cell_data={k: [np.asarray(v)] for k, v in (cell_data or {}).items()},
+    )
+    path = Path(path)
+    meshio.write(path, mesh, file_format="vtu")
+    return path
+
+
+def write_vtu_series(
+    directory: str | os.PathLike,
+    stem: str,
+    points: np.ndarray,
+    cells: np.ndarray,
+    displacements: np.ndarray,
+    times: np.ndarray,
+    deformed: bool = False,
+) -> Path:
+    """Write a time series as ``stem_0000.vtu, stem_0001.vtu, …`` plus a ParaView collection
+    ``stem.pvd`` listing each file with its time; return the ``.pvd`` path.
+
+    Args:
+        directory: output folder (created if missing).
+        stem: file name stem.
+        points: (n, 3) reference node positions, mm.
+        cells: (m, 4) or (m, 10) tetrahedra, see :func:`write_vtu`.
+        displacements: (T, n, 3) nodal displacements, mm, written as point data
+            ``displacement`` (ParaView's "Warp By Vector" shows the deformed shape).
+        times: (T,) times, s.
+        deformed: write the deformed positions ``points + displacement`` as the geometry
+            instead of the reference ones.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    u = np.asarray(displacements, dtype=np.float64)
+    times = np.asarray(times, dtype=np.float64).reshape(-1)
+    if u.ndim != 3 or u.shape[1:] != points.shape or u.shape[0] != times.size:
+        raise ValueError(
+            f"displacements must be (T, n, 3) = ({times.size}, {points.shape[0]}, 3), got {u.shape}"
+        )
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    width = max(4, len(str(max(times.size - 1, 0))))
+    entries = []
+    for k in range(times.size):
+        name = f"{stem}_{k:0{width}d}.vtu"
+        geometry = points + u[k] if deformed else points
+        write_vtu(directory / name, geometry, cells, point_data={"displacement": u[k]})
+        time = repr(float(times[k]))  # shortest exact decimal
+        entries.append(f'    <DataSet timestep="{time}" part="0" file={quoteattr(name)}/>')
+    pvd = directory / f"{stem}.pvd"
+    pvd.write_text(
+        '<?xml version="1.0"?>\n'
+        '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">\n'
+        "  <Collection>\n" + "\n".join(entries) + "\n  </Collection>\n</VTKFile>\n"
+    )
+    return pvd

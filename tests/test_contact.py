@@ -1,0 +1,516 @@
+"""Contact solvers: cone projection, KKT conditions, independent solvers, PGS vs APGD.
+
+Units: forces N, velocities mm/s, Delassus matrices mm/(s·N).
+"""
+
+import functools
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.optimize
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+import jsnap  # noqa: F401  (enables x64)
+from jsnap._contact import (
+    ContactSolution,
+    kkt_residual,
+    kkt_terms,
+    project_cone,
+    solve_apgd,
+    solve_pgs,
+    symmetric_squeeze_problem,
+)
+
+# Derandomised so that CI sees the same examples every run; few examples, since every one is a
+# full solve. Solver functions are jitted once per shape (C = 8, C = 24) and shared.
+PROPS = settings(
+    derandomize=True,
+    database=None,
+    deadline=None,
+    max_examples=25,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+
+TOL = 1e-6
+TIGHT = 1e-10  # for comparisons with exact or independent solutions
+
+# Compilation dominates this file's run time, so every solver is compiled once per shape: tol
+# and gamma0 are traced arguments, always passed (zeros = cold start).
+_apgd_jit = jax.jit(functools.partial(solve_apgd, max_iters=20000))
+_pgs_jit = jax.jit(functools.partial(solve_pgs, max_iters=1000))
+_project = jax.jit(project_cone)  # eager JAX dispatches op by op: seconds per call
+
+
+def apgd(W, q, mu, mask, tol=TOL, gamma0=None):
+    """APGD, at most 20000 iterations (degenerate problems at TIGHT need ~10⁴)."""
+    gamma0 = np.zeros((len(mu), 3)) if gamma0 is None else gamma0
+    return _apgd_jit(W, q, mu, mask, tol=tol, gamma0=gamma0)
+
+
+def pgs(W, q, mu, mask, tol=TOL, gamma0=None):
+    """PGS, at most 1000 sweeps."""
+    gamma0 = np.zeros((len(mu), 3)) if gamma0 is None else gamma0
+    return _pgs_jit(W, q, mu, mask, tol=tol, gamma0=gamma0)
+
+
+@jax.jit
+def _kkt(W, q, mu, mask, gamma):
+    return kkt_residual(W, q, mu, mask, gamma), kkt_terms(W, q, mu, mask, gamma)
+
+
+def residual(W, q, mu, mask, gamma):
+    return float(_kkt(W, q, mu, mask, gamma)[0])
+
+
+def terms(W, q, mu, mask, gamma):
+    return tuple(float(t) for t in _kkt(W, q, mu, mask, gamma)[1])
+
+
+def random_problem(seed, C, n_kind, frictionless=False):
+    """A physical random contact problem with C slots (NumPy float64).
+
+    ``W = J A⁻¹ Jᵀ``: ``n`` generalised DoF with a random SPD mass-like matrix ``A``
+    (eigenvalues over two decades) and a random contact Jacobian ``J`` (3C × n). ``n < 3C``
+    makes W singular (more contact directions than DoF: redundant contacts). ``q = J v + s``:
+    the relative velocity of a free velocity ``v`` plus a gap term ``s`` that only adds positive
+    normal velocity (contacts within the margin but not yet touching). Keeping ``q`` in
+    ``range(J)`` up to such gaps keeps the problem bounded when W is singular.
+    """
+    rng = np.random.default_rng(seed)
+    n = {"tiny": 3, "under": C, "square": 3 * C, "over": 3 * C + 10}[n_kind]
+    J = rng.standard_normal((3 * C, n))
+    Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    Ainv = (Q / 10 ** rng.uniform(0, 2, n)) @ Q.T
+    W = J @ Ainv @ J.T * 10 ** rng.uniform(-2, 2)
+    W = 0.5 * (W + W.T)
+    q = (J @ rng.standard_normal(n) * 10 ** rng.uniform(-1, 2)).reshape(C, 3)
+    gaps = rng.random(C) < 0.3
+    q[:, 0] += gaps * rng.uniform(0, 1, C) * np.abs(q).max()
+    mu = rng.uniform(0, 1.2, C)
+    mu[rng.random(C) < 0.2] = 0.0
+    if frictionless:
+        mu[:] = 0.0
+    mask = rng.random(C) < rng.uniform(0.3, 1.0)
+    return W, q.reshape(-1), mu, mask
+
+
+def objective(W, q, gamma):
+    g = np.asarray(gamma, np.float64).reshape(-1)
+    return 0.5 * g @ W @ g + q @ g
+
+
+seeds = st.integers(0, 2**31 - 1)
+n_kinds = st.sampled_from(["tiny", "under", "square", "over"])
+
+
+# ----------------------------------------------------------------------------------------------
+# Cone projection
+
+
+def _vectors_and_mu(draw_n=16):
+    vec = hnp.arrays(np.float64, (draw_n, 3), elements=st.floats(-10, 10, width=64))
+    mus = hnp.arrays(
+        np.float64, (draw_n,), elements=st.one_of(st.just(0.0), st.floats(0, 1.2, width=64))
+    )
+    return vec, mus
+
+
+@PROPS
+@given(*_vectors_and_mu())
+def test_project_cone_moreau(x, mu):
+    """Moreau: x = p + r with p ∈ F, r ∈ F° (the polar cone), p ⊥ r; and P(P(x)) = P(x)."""
+    # Exact zeros in the tangents exercise the ‖t‖ = 0 branch.
+    x[::5, 1:] = 0.0
+    p = np.asarray(_project(x, mu))
+    r = x - p
+    scale = 1 + np.abs(x).max()
+    eps = 1e-12 * scale
+    assert np.all(np.linalg.norm(p[:, 1:], axis=1) <= mu * p[:, 0] + eps)
+    assert np.all(mu * np.linalg.norm(r[:, 1:], axis=1) <= -r[:, 0] + eps)
+    assert np.all(np.abs(np.sum(p * r, axis=1)) <= 1e-12 * scale**2)
+    np.testing.assert_allclose(np.asarray(_project(p, mu)), p, atol=eps)
+    # Nothing in F is closer: compare with random points of the cone.
+    rng = np.random.default_rng(0)
+    n = rng.uniform(0, 10, (8, len(mu)))
+    ang = rng.uniform(0, 2 * np.pi, (8, len(mu)))
+    rad = mu * n * rng.uniform(0, 1, (8, len(mu)))
+    cand = np.stack([n, rad * np.cos(ang), rad * np.sin(ang)], axis=-1)
+    d_cand = np.linalg.norm(cand - x, axis=-1)
+    assert np.all(np.linalg.norm(r, axis=1) <= d_cand + eps)
+
+
+def test_project_cone_known_values():
+    mu = np.array([0.5, 0.5, 0.5, 0.0, 0.0, 1.0])
+    x = np.array(
+        [
+            [2.0, 0.6, 0.8],  # inside (‖t‖ = 1 ≤ 1): kept
+            [-2.0, 0.6, 0.8],  # in the polar cone (0.5 ≤ 2): apex
+            [0.0, 3.0, 4.0],  # on neither: surface, n' = (0 + 2.5)/1.25 = 2, t' = 0.5·2·(0.6,0.8)
+            [1.5, 3.0, -1.0],  # μ = 0: normal half-line
+            [-1.5, 3.0, -1.0],
+            [0.0, 0.0, 0.0],  # apex
+        ]
+    )
+    expect = np.array(
+        [
+            [2.0, 0.6, 0.8],
+            [0.0, 0.0, 0.0],
+            [2.0, 0.6, 0.8],
+            [1.5, 0.0, 0.0],
+            [0.0, 0.0, 0.0],
+            [0.0, 0.0, 0.0],
+        ]
+    )
+    np.testing.assert_allclose(np.asarray(_project(x, mu)), expect, atol=1e-15)
+
+
+_JACOBIANS = [jax.jit(jac(project_cone, argnums=(0, 1))) for jac in (jax.jacfwd, jax.jacrev)]
+
+
+@pytest.mark.parametrize(
+    "x, mu",
+    [
+        ([0.0, 0.0, 0.0], 0.5),  # apex
+        ([0.0, 0.0, 0.0], 0.0),  # apex, μ = 0
+        ([1.0, 0.0, 0.0], 0.5),  # on the axis (‖t‖ = 0)
+        ([-1.0, 0.0, 0.0], 0.5),  # on the negative axis
+        ([1.0, 0.0, 0.0], 0.0),
+        ([1.0, 2.0, -1.0], 0.0),  # μ = 0 with tangential part
+        ([1.0, 0.3, 0.4], 0.5),  # on the cone's surface
+        ([-1.0, 1.2, 1.6], 0.5),  # on the polar cone's surface
+    ],
+)
+def test_project_cone_gradients_finite(x, mu):
+    x = jnp.asarray(x)
+    mu = jnp.asarray(mu)
+    for jac in _JACOBIANS:
+        dx, dmu = jac(x, mu)
+        assert np.all(np.isfinite(dx)) and np.all(np.isfinite(dmu))
+
+
+# ----------------------------------------------------------------------------------------------
+# KKT residual
+
+
+def _exact_kkt_problem(mu=0.4):
+    """A problem built from a known solution: each contact separating, sticking or sliding."""
+    rng = np.random.default_rng(3)
+    C = 8
+    B = rng.standard_normal((3 * C, 3 * C))
+    W = B @ B.T / (3 * C) + 0.1 * np.eye(3 * C)
+    gamma = np.zeros((C, 3))
+    u = np.zeros((C, 3))
+    for i in range(C):
+        e = rng.standard_normal(2)
+        e /= np.linalg.norm(e)
+        kind = i % 3
+        if kind == 0:  # separating: γ = 0, u inside the dual cone
+            u[i] = [2.0, *(0.5 / mu * e)]
+        elif kind == 1:  # sticking: γ inside the cone, u = 0
+            gamma[i] = [1.5, *(0.3 * mu * 1.5 * e)]
+        else:  # sliding: γ on the cone, u on the dual cone's surface opposite to γ_t
+            gamma[i] = [1.2, *(mu * 1.2 * e)]
+            u[i] = [mu * 0.7, *(-0.7 * e)]
+    q = u.reshape(-1) - W @ gamma.reshape(-1)
+    return W, q, np.full(C, mu), np.ones(C, bool), gamma
+
+
+def test_kkt_residual_zero_at_exact_solution_and_found_by_apgd():
+    W, q, mu, mask, gamma = _exact_kkt_problem()
+    assert residual(W, q, mu, mask, gamma) < 1e-14
+    assert max(terms(W, q, mu, mask, gamma)) < 1e-14
+    sol = apgd(W, q, mu, mask, tol=TIGHT)
+    np.testing.assert_allclose(np.asarray(sol.gamma), gamma, atol=1e-8)
+    # A perturbed γ is not a solution.
+    assert residual(W, q, mu, mask, gamma * 1.01) > 1e-4
+
+
+@PROPS
+@given(seeds, st.floats(-6, 6), st.floats(-6, 6))
+def test_kkt_residual_scale_invariant(seed, log_a, log_b):
+    """W → aW, q → bq scales the solution by b/a and leaves the residual unchanged."""
+    W, q, mu, mask = random_problem(seed, 8, "square")
+    mask[0] = True
+    gamma = np.asarray(apgd(W, q, mu, mask).gamma) * 1.1 + 0.01  # not a solution
+    a, b = 10.0**log_a, 10.0**log_b
+    r1 = residual(W, q, mu, mask, gamma)
+    r2 = residual(a * W, b * q, mu, mask, gamma * b / a)
+    assert r1 > 0
+    np.testing.assert_allclose(r2, r1, rtol=1e-9)
+
+
+# ----------------------------------------------------------------------------------------------
+# APGD on random physical problems
+
+
+@PROPS
+@given(seeds, st.sampled_from([8, 24]), n_kinds)
+def test_apgd_satisfies_kkt(seed, C, n_kind):
+    W, q, mu, mask = random_problem(seed, C, n_kind)
+    sol = apgd(W, q, mu, mask)
+    assert bool(sol.converged)
+    assert 0 <= int(sol.iterations) < 3000
+    gamma = np.asarray(sol.gamma)
+    # Inactive slots are exactly zero, whatever W and q hold there.
+    assert np.all(gamma[~mask] == 0.0)
+    r = residual(W, q, mu, mask, gamma)
+    assert r <= TOL
+    np.testing.assert_allclose(float(sol.residual), r, rtol=1e-9, atol=1e-300)
+    primal, dual, comp = terms(W, q, mu, mask, gamma)
+    assert primal <= 1e-14  # iterates are projections: feasible up to round-off
+    assert dual <= 2 * TOL
+    assert comp <= 2 * TOL
+
+
+@PROPS
+@given(seeds, n_kinds)
+def test_frictionless_matches_active_set_enumeration(seed, n_kind):
+    """μ = 0: the normal LCP solved exactly by enumerating supports (C = 8: ≤ 256 of them).
+
+    For W ⪰ 0 some solution has a support S with W_SS nonsingular (move along a null vector
+    of W_SS until a force hits zero), so enumeration finds it. γ itself need not be unique
+    when W is singular; the objective and the velocity u = Wγ + q are.
+    """
+    W, q, mu, mask = random_problem(seed, 8, n_kind, frictionless=True)
+    act = np.flatnonzero(mask)
+    Wn = W[0::3, 0::3][np.ix_(act, act)]
+    qn = q[0::3][act]
+    qscale = np.abs(qn).max() if len(act) else 1.0
+    best = None
+    for r in range(len(act) + 1):
+        for S in map(list, itertools.combinations(range(len(act)), r)):
+            x = np.zeros(len(act))
+            if S:
+                x[S] = np.linalg.lstsq(Wn[np.ix_(S, S)], -qn[S], rcond=None)[0]
+            u = Wn @ x + qn
+            if (
+                x.min(initial=0) >= -1e-12 * (1 + np.abs(x).max(initial=0))
+                and u.min(initial=0) >= -1e-9 * qscale
+            ):
+                f = 0.5 * x @ Wn @ x + qn @ x
+                if best is None or f < best[0]:
+                    best = (f, u)
+    assert best is not None
+    sol = apgd(W, q, mu, mask, tol=TIGHT)
+    assert bool(sol.converged)
+    gamma = np.asarray(sol.gamma)
+    assert np.all(gamma[:, 1:] == 0.0)
+    f = objective(W, q, gamma)
+    assert abs(f - best[0]) <= 1e-9 * abs(best[0]) + 1e-300
+    u = (W @ gamma.reshape(-1) + q)[0::3][act]
+    np.testing.assert_allclose(u, best[1], atol=1e-5 * qscale)
+
+
+@settings(PROPS, max_examples=8)
+@given(seeds, st.sampled_from(["under", "square", "over"]))
+def test_friction_objective_not_worse_than_slsqp(seed, n_kind):
+    """With friction, APGD's objective is ≤ that of SciPy's SLSQP on the same convex problem."""
+    W, q, mu, mask = random_problem(seed, 8, n_kind)
+    C = 8
+
+    def fun(g):
+        return 0.5 * g @ W @ g + q @ g, W @ g + q
+
+    def cone(g):  # μ²γ_n² − ‖γ_t‖² ≥ 0 together with γ_n ≥ 0 (a bound) is the cone
+        g = g.reshape(C, 3)
+        return (mu**2 * g[:, 0] ** 2 - g[:, 1] ** 2 - g[:, 2] ** 2)[mask]
+
+    def cone_jac(g):
+        g = g.reshape(C, 3)
+        Jc = np.zeros((C, C, 3))
+        Jc[np.arange(C), np.arange(C)] = np.stack(
+            [2 * mu**2 * g[:, 0], -2 * g[:, 1], -2 * g[:, 2]], 1
+        )
+        return Jc.reshape(C, 3 * C)[mask]
+
+    bounds = []
+    for i in range(C):
+        if not mask[i]:
+            bounds += [(0, 0)] * 3
+        elif mu[i] == 0:
+            bounds += [(0, None), (0, 0), (0, 0)]
+        else:
+            bounds += [(0, None), (None, None), (None, None)]
+    x0 = np.tile([1.0, 0.0, 0.0], C) * np.repeat(mask, 3)
+    res = scipy.optimize.minimize(
+        fun,
+        x0,
+        jac=True,
+        method="SLSQP",
+        bounds=bounds,
+        constraints=[{"type": "ineq", "fun": cone, "jac": cone_jac}] if mask.any() else [],
+        options={"maxiter": 1000, "ftol": 1e-14},
+    )
+    # SLSQP may end slightly outside the cone, where the objective can be lower than the
+    # minimum: compare with the objective at its projection onto the cones (a feasible point).
+    x = np.asarray(_project(res.x.reshape(C, 3), mu))
+    assert np.all(np.linalg.norm(x[:, 1:], axis=1) <= mu * x[:, 0] * (1 + 1e-12))
+    sol = apgd(W, q, mu, mask, tol=TIGHT)
+    assert bool(sol.converged)
+    f_apgd = objective(W, q, sol.gamma)
+    scale = np.abs(q).max() * max(np.abs(x).max(), np.abs(np.asarray(sol.gamma)).max())
+    assert f_apgd <= objective(W, q, x) + 1e-9 * scale
+
+
+# ----------------------------------------------------------------------------------------------
+# PGS: correct where it should be, stalling on the squeeze
+
+
+def _separated_problem(seed=0, C=8):
+    """Weakly coupled contacts (diagonally dominant W): PGS's home ground."""
+    rng = np.random.default_rng(seed)
+    B = 0.1 * rng.standard_normal((3 * C, 3 * C))
+    W = np.eye(3 * C) + B @ B.T / (3 * C)
+    q = rng.standard_normal(3 * C)
+    q[0::3] -= 0.5
+    mu = rng.uniform(0, 1, C)
+    mask = np.arange(C) != 5
+    return W, q, mu, mask
+
+
+def test_pgs_converges_to_apgd_solution_on_well_conditioned_problem():
+    W, q, mu, mask = _separated_problem()
+    p = pgs(W, q, mu, mask)
+    a = apgd(W, q, mu, mask, tol=TIGHT)
+    assert bool(p.converged) and int(p.iterations) < 50
+    assert np.all(np.asarray(p.gamma)[~mask] == 0.0)
+    np.testing.assert_allclose(np.asarray(p.gamma), np.asarray(a.gamma), atol=1e-5)
+    # Tight tolerance: PGS reaches the same point as APGD to high accuracy.
+    p = pgs(W, q, mu, mask, tol=TIGHT)
+    assert bool(p.converged)
+    np.testing.assert_allclose(np.asarray(p.gamma), np.asarray(a.gamma), atol=1e-8)
+
+
+def test_symmetric_squeeze_pgs_stalls_apgd_converges():
+    """The paper's counter-example.
+
+    A light rigid plug (~80 mg, translating freely) is squeezed between two identical stiff
+    latches; 4 contact points on each hook's lead ramp (a line across the width), normals +x on
+    the left hook and −x on the right, μ = 0.3; the hooks close on the plug at 10 mm/s while
+    the plug slides down at 10 mm/s. Over one 1 ms PMI step the plug's mobility is 300× a
+    hook's (``mobility_ratio``), so ``W = W_hooks + (dt/2m) G Gᵀ`` has a huge rank-3 part: any
+    imbalance between left and right forces moves the plug fast, while the squeezing forces
+    that actually develop are resisted only by the hooks. Gauss–Seidel, updating one contact at
+    a time, overshoots through the plug and must shuttle force back and forth between the hooks;
+    APGD moves all contacts together along the gradient.
+    """
+    P = symmetric_squeeze_problem(n_per_side=4, mobility_ratio=300.0, mu=0.3)
+    assert P.condition > 1e4  # genuinely ill-conditioned
+    assert 5e-8 < P.plug_mass < 2e-7  # t: 0.05 to 0.2 g
+    a = apgd(P.W, P.q, P.mu, P.mask)
+    p = pgs(P.W, P.q, P.mu, P.mask)  # cap: 1000 sweeps
+    # Measured: APGD converges in 362 iterations; PGS after 1000 sweeps is at ~1.6e-4.
+    assert bool(a.converged)
+    assert int(a.iterations) <= 500
+    assert not bool(p.converged)
+    assert int(p.iterations) == 1000
+    assert float(p.residual) >= 100 * TOL
+    assert float(p.residual) >= 100 * float(a.residual)
+
+    # The physics of the converged answer (tight solve): the plug is in balance, the two hooks
+    # carry mirror-image forces, and friction holds the light plug (sticking, inside the cone).
+    g = np.asarray(apgd(P.W, P.q, P.mu, P.mask, tol=TIGHT).gamma)[P.mask]
+    left, right = g[:4], g[4:]
+    np.testing.assert_allclose(left, right, rtol=1e-6, atol=1e-9)
+    assert np.all(left[:, 0] > 0)
+    net_x = left[:, 0].sum() - right[:, 0].sum()
+    assert abs(net_x) <= 1e-8 * left[:, 0].sum()
+    assert np.all(np.linalg.norm(g[:, 1:], axis=1) < 0.3 * g[:, 0])
+
+
+# ----------------------------------------------------------------------------------------------
+# JAX behaviour: vmap, jit, dtypes, warm start, gradients, errors
+
+
+def test_vmap_equals_loop_and_no_recompile():
+    problems = [random_problem(s, 8, "under") for s in range(4)]
+    W, q, mu, mask = (np.stack(a) for a in zip(*problems, strict=True))
+    batched = jax.jit(jax.vmap(functools.partial(solve_apgd, max_iters=3000, tol=TOL)))(
+        W, q, mu, mask
+    )
+    assert batched.gamma.shape == (4, 8, 3) and batched.iterations.shape == (4,)
+    for i, p in enumerate(problems):
+        one = apgd(*p)
+        np.testing.assert_allclose(np.asarray(batched.gamma[i]), np.asarray(one.gamma), atol=1e-12)
+        assert int(batched.iterations[i]) == int(one.iterations)
+    n_compiled = _apgd_jit._cache_size()
+    apgd(*problems[1])
+    assert _apgd_jit._cache_size() == n_compiled
+
+
+@pytest.mark.parametrize("solver", ["apgd", "pgs"])
+def test_float32_in_float32_out(solver):
+    W, q, mu, mask = _separated_problem()
+    f = {"apgd": solve_apgd, "pgs": solve_pgs}[solver]
+    fn = jax.jit(functools.partial(f, max_iters=500, tol=1e-5))
+    sol32 = fn(W.astype(np.float32), q.astype(np.float32), mu.astype(np.float32), mask)
+    assert isinstance(sol32, ContactSolution)
+    assert sol32.gamma.dtype == jnp.float32 and sol32.residual.dtype == jnp.float32
+    assert sol32.iterations.dtype == jnp.int32 and sol32.converged.dtype == jnp.bool_
+    assert bool(sol32.converged)
+    ref = np.asarray(apgd(W, q, mu, mask, tol=TIGHT).gamma)
+    np.testing.assert_allclose(np.asarray(sol32.gamma), ref, atol=1e-4)
+
+
+def test_warm_start_from_solution_takes_no_iterations():
+    W, q, mu, mask = random_problem(7, 8, "square")
+    sol = apgd(W, q, mu, mask)
+    warm = apgd(W, q, mu, mask, gamma0=sol.gamma)
+    assert int(warm.iterations) == 0 and bool(warm.converged)
+    # The warm start is re-projected onto the cones: equal up to round-off.
+    np.testing.assert_allclose(np.asarray(warm.gamma), np.asarray(sol.gamma), rtol=1e-12)
+    # Garbage in inactive slots of the warm start is discarded.
+    g0 = np.asarray(sol.gamma).copy()
+    g0[~mask] = 5.0
+    warm = pgs(W, q, mu, mask, gamma0=g0)
+    assert np.all(np.asarray(warm.gamma)[~mask] == 0.0)
+
+
+def test_gradient_through_apgd_matches_finite_differences():
+    """d(weighted forces)/dq through the unrolled, frozen scan, against central differences.
+
+    The problem has strict complementarity (separating, sticking and sliding contacts with
+    margins), so the solution is smooth in q near this point.
+    """
+    W, q, mu, mask, _ = _exact_kkt_problem()
+    w = np.random.default_rng(1).standard_normal((8, 3))
+
+    def f(q, mu):
+        return jnp.sum(solve_apgd(W, q, mu, mask, max_iters=1000, tol=1e-13).gamma * w)
+
+    gq, gmu = jax.jit(jax.grad(f, argnums=(0, 1)))(q, mu)
+    assert np.all(np.isfinite(gq)) and np.all(np.isfinite(gmu))
+
+    def fj(q, mu):  # the same solve through the shared compiled function
+        return float(np.sum(np.asarray(apgd(W, q, mu, mask, tol=1e-13).gamma) * w))
+
+    rng = np.random.default_rng(2)
+    for _ in range(2):
+        d = rng.standard_normal(q.shape)
+        h = 1e-5
+        fd = (fj(q + h * d, mu) - fj(q - h * d, mu)) / (2 * h)
+        np.testing.assert_allclose(float(gq @ d), float(fd), rtol=1e-5)
+    dm = rng.standard_normal(mu.shape)
+    fd = (fj(q, mu + h * dm) - fj(q, mu - h * dm)) / (2 * h)
+    np.testing.assert_allclose(float(gmu @ dm), float(fd), rtol=1e-5)
+
+
+def test_shape_errors_name_the_argument():
+    W, q, mu, mask = _separated_problem()
+    with pytest.raises(ValueError, match=r"W must be \(3C, 3C\)"):
+        solve_apgd(W[:-1], q, mu, mask, max_iters=10, tol=TOL)
+    with pytest.raises(ValueError, match="q must be"):
+        solve_pgs(W, q[:-1], mu, mask, max_iters=10, tol=TOL)
+    with pytest.raises(ValueError, match="mu must be"):
+        kkt_residual(W, q, mu[:-1], mask, np.zeros((8, 3)))
+    with pytest.raises(ValueError, match="mask must be"):
+        solve_apgd(W, q, mu, mask[:-1], max_iters=10, tol=TOL)
+    with pytest.raises(ValueError, match="max_iters must be a positive"):
+        solve_apgd(W, q, mu, mask, max_iters=0, tol=TOL)
+    with pytest.raises(ValueError, match="gamma0 must be"):
+        solve_apgd(W, q, mu, mask, max_iters=10, tol=TOL, gamma0=np.zeros((7, 3)))
