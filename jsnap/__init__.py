@@ -1,13 +1,37 @@
 """jsnap: real-time, batched, differentiable simulation of robotic snap-fit connection.
 
 Units everywhere: mm, N, MPa, s, tonne (density in t/mm^3).
+
+    import jsnap
+    scene = jsnap.load_scene()            # the shipped default scene
+    model = jsnap.build(scene)            # host: mesh, assembly, contact samples
+    result = jsnap.rollout(model)         # pure JAX: jit, vmap, grad
+    result.insertion_force                # (steps,) N
 """
 
 import jax
 
-# The build is done in float64 (assembly, factorisations, reduction); rollouts cast to the
-# dtype they are asked for (float32 by default). Without x64 JAX would silently demote the
-# build to float32.
+# The build is done in float64 (assembly, factorisations); rollouts cast to the dtype they
+# are asked for (float32 by default). Without x64 JAX would silently demote the build.
 jax.config.update("jax_enable_x64", True)
 
+from jsnap._model import Model, Params, build  # noqa: E402
+from jsnap._scene import Scene, SceneError, load_scene  # noqa: E402
+from jsnap._sim import Prepared, Result, State, init_state, prepare, rollout, step  # noqa: E402
+
 __version__ = "0.1.0"
+__all__ = [
+    "Model",
+    "Params",
+    "Prepared",
+    "Result",
+    "Scene",
+    "SceneError",
+    "State",
+    "build",
+    "init_state",
+    "load_scene",
+    "prepare",
+    "rollout",
+    "step",
+]

@@ -427,9 +427,7 @@ def solve_apgd(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=Fals
         )
         return new
 
-    final, trace = _frozen_scan(
-        step, init, lambda s: s.done, lambda s: s.best_r, max_iters=max_iters
-    )
+    final, trace = _frozen_scan(step, init, lambda s: s.done, lambda s: s.best_r, max_iters=max_iters)
     sol = ContactSolution(
         gamma=final.best.reshape(c, 3),
         iterations=final.it,
@@ -498,9 +496,7 @@ def solve_pgs(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=False
         r_new = residual(g_new)
         return (g_new, r_new, s[2] + 1, r_new <= tol)
 
-    (g, r, it, _), trace = _frozen_scan(
-        step, init, lambda s: s[3], lambda s: s[1], max_iters=max_iters
-    )
+    (g, r, it, _), trace = _frozen_scan(step, init, lambda s: s[3], lambda s: s[1], max_iters=max_iters)
     sol = ContactSolution(gamma=g.reshape(c, 3), iterations=it, residual=r, converged=r <= tol)
     return (sol, trace) if return_trace else sol
 

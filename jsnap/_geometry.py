@@ -315,9 +315,7 @@ class TetMesh:
     def boundary_faces(self) -> np.ndarray:
         """(f, 3) int64 boundary triangles, ordered so the right-hand normal points outwards."""
         faces = self.cells[:, _TET_FACES].reshape(-1, 3)
-        _, first, counts = np.unique(
-            np.sort(faces, axis=1), axis=0, return_index=True, return_counts=True
-        )
+        _, first, counts = np.unique(np.sort(faces, axis=1), axis=0, return_index=True, return_counts=True)
         return faces[np.sort(first[counts == 1])]
 
     def boundary_face_areas(self) -> np.ndarray:
@@ -573,14 +571,10 @@ def write_vtu(
         raise ValueError(f"cells must be (m, 4) or (m, 10), got {cells.shape}")
     for name, data in (point_data or {}).items():
         if np.shape(data)[0] != points.shape[0]:
-            raise ValueError(
-                f"point_data[{name!r}] has {np.shape(data)[0]} rows, expected {points.shape[0]}"
-            )
+            raise ValueError(f"point_data[{name!r}] has {np.shape(data)[0]} rows, expected {points.shape[0]}")
     for name, data in (cell_data or {}).items():
         if np.shape(data)[0] != cells.shape[0]:
-            raise ValueError(
-                f"cell_data[{name!r}] has {np.shape(data)[0]} rows, expected {cells.shape[0]}"
-            )
+            raise ValueError(f"cell_data[{name!r}] has {np.shape(data)[0]} rows, expected {cells.shape[0]}")
     mesh = meshio.Mesh(
         points,
         [(_VTK_TET[cells.shape[1]], cells)],

@@ -88,11 +88,12 @@ _SCHEMA: dict[str, dict[str, _Key]] = {
     },
     "contact": {
         "friction": _Key(float, 0.3, _nonneg, doc="Coulomb coefficient mu"),
-        "capacity": _Key(int, 96, _positive, doc="contact buffer slots"),
-        "spacing": _Key(float, 0.1, _positive, doc="candidate point spacing on the socket, mm"),
-        "margin": _Key(float, 0.05, _nonneg, doc="distance below which a point is a candidate, mm"),
+        "capacity": _Key(int, 64, _positive, doc="contact buffer slots"),
+        "spacing": _Key(float, 0.05, _positive, doc="candidate spacing along the section, mm"),
+        "width_spacing": _Key(float, 0.5, _positive, doc="candidate spacing across width, mm"),
+        "margin": _Key(float, 0.02, _nonneg, doc="distance below which a point is a candidate, mm"),
         "solver": _Key(str, "apgd", choices=("apgd", "pgs"), doc="cone-complementarity solver"),
-        "iterations": _Key(int, 300, _positive, doc="maximum solver iterations per step"),
+        "iterations": _Key(int, 500, _positive, doc="maximum solver iterations per step"),
         "tolerance": _Key(float, 1e-6, _positive, doc="normalised KKT residual to stop at"),
     },
     "plug": {
@@ -115,7 +116,7 @@ _SCHEMA: dict[str, dict[str, _Key]] = {
         "dt": _Key(float, 1e-3, _positive, doc="time step, s"),
         "method": _Key(str, "full", choices=("full", "segmented", "reduced")),
         "element": _Key(str, "P2", choices=("P1", "P2")),
-        "mesh_size": _Key(float, 0.6, _positive, doc="element size, mm"),
+        "mesh_size": _Key(float, 0.8, _positive, doc="element size, mm"),
         "hook_mesh_size": _Key(float, None, _optional_positive, doc="element size at the hook"),
         "sdf": _Key(str, "analytic", choices=("analytic", "mesh", "neural")),
         "dtype": _Key(str, "float32", choices=("float32", "float64"), doc="rollout precision"),
@@ -196,9 +197,7 @@ class Scene:
             raise SceneError(f"a scene must be a table of sections, got {type(raw).__name__}")
         for section in raw:
             if section not in _SCHEMA:
-                raise SceneError(
-                    f"unknown section [{section}]; expected one of {', '.join(_SCHEMA)}"
-                )
+                raise SceneError(f"unknown section [{section}]; expected one of {', '.join(_SCHEMA)}")
         sections: dict[str, Mapping[str, Any]] = {}
         for section, keys in _SCHEMA.items():
             given = raw.get(section, {})
@@ -207,8 +206,7 @@ class Scene:
             for key in given:
                 if key not in keys:
                     raise SceneError(
-                        f"unknown key {section}.{key} = {given[key]!r}; "
-                        f"[{section}] takes {', '.join(keys)}"
+                        f"unknown key {section}.{key} = {given[key]!r}; [{section}] takes {', '.join(keys)}"
                     )
             values = {}
             for key, spec in keys.items():
@@ -258,9 +256,7 @@ def _check_consistency(scene: Scene) -> None:
     except ValueError as err:
         raise SceneError(str(err)) from None
     p = scene["plug"]
-    half = 0.5 * min(
-        p["thickness"] or 1.25 * c["undercut"], p["width"] or c["width"] + 1.0, p["height"]
-    )
+    half = 0.5 * min(p["thickness"] or 1.25 * c["undercut"], p["width"] or c["width"] + 1.0, p["height"])
     if p["fillet"] > half:
         raise SceneError(
             f"plug.fillet = {p['fillet']!r}: must be <= half the plug's smallest side ({half:g} mm)"

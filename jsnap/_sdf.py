@@ -423,9 +423,7 @@ def _mesh_eval(sdf, p, chunk):
     chunk = -(-n_points // n_chunks)
     # The search is discrete: keep it out of autodiff so no (N, F) tangents are ever built.
     p_search = jax.lax.stop_gradient(p)
-    p_search = jnp.concatenate(
-        [p_search, jnp.broadcast_to(p_search[:1], (n_chunks * chunk - n_points, 3))]
-    )
+    p_search = jnp.concatenate([p_search, jnp.broadcast_to(p_search[:1], (n_chunks * chunk - n_points, 3))])
     search = jax.vmap(_nearest_triangle, in_axes=(None, 0))
     if n_chunks == 1:
         j = search(terms, p_search)
@@ -437,9 +435,9 @@ def _mesh_eval(sdf, p, chunk):
     sel = jax.tree.map(lambda t: t[..., j], terms)
     diff, feature = _closest_on_triangle(p.T - sel["a"], sel)
     diff = diff.T  # (N, 3)
-    pseudo = jnp.concatenate(
-        [sdf.face_normal[:, None], sdf.edge_normal, sdf.vertex_normal], axis=1
-    ).astype(dtype)[j, feature]
+    pseudo = jnp.concatenate([sdf.face_normal[:, None], sdf.edge_normal, sdf.vertex_normal], axis=1).astype(
+        dtype
+    )[j, feature]
     # Bærentzen & Aanæs: the sign of (p − closest) · (pseudonormal of the closest feature)
     # is the inside/outside test, robust at edges and vertices.
     sign = jnp.where(jnp.sum(diff * pseudo, -1) >= 0, 1.0, -1.0).astype(dtype)
@@ -448,9 +446,7 @@ def _mesh_eval(sdf, p, chunk):
     # feature's pseudonormal, which is the one-sided limit of the normal on the surface.
     tol = 100.0 * jnp.finfo(dtype).eps * sdf.scale.astype(dtype)
     far = dist > tol
-    normal = jnp.where(
-        far[:, None], sign[:, None] * diff / jnp.where(far, dist, 1.0)[:, None], pseudo
-    )
+    normal = jnp.where(far[:, None], sign[:, None] * diff / jnp.where(far, dist, 1.0)[:, None], pseudo)
     return sign * dist, normal
 
 

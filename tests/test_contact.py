@@ -114,9 +114,7 @@ n_kinds = st.sampled_from(["tiny", "under", "square", "over"])
 
 def _vectors_and_mu(draw_n=16):
     vec = hnp.arrays(np.float64, (draw_n, 3), elements=st.floats(-10, 10, width=64))
-    mus = hnp.arrays(
-        np.float64, (draw_n,), elements=st.one_of(st.just(0.0), st.floats(0, 1.2, width=64))
-    )
+    mus = hnp.arrays(np.float64, (draw_n,), elements=st.one_of(st.just(0.0), st.floats(0, 1.2, width=64)))
     return vec, mus
 
 
@@ -323,9 +321,7 @@ def test_friction_objective_not_worse_than_slsqp(seed, n_kind):
     def cone_jac(g):
         g = g.reshape(C, 3)
         Jc = np.zeros((C, C, 3))
-        Jc[np.arange(C), np.arange(C)] = np.stack(
-            [2 * mu**2 * g[:, 0], -2 * g[:, 1], -2 * g[:, 2]], 1
-        )
+        Jc[np.arange(C), np.arange(C)] = np.stack([2 * mu**2 * g[:, 0], -2 * g[:, 1], -2 * g[:, 2]], 1)
         return Jc.reshape(C, 3 * C)[mask]
 
     bounds = []
@@ -430,9 +426,7 @@ def test_symmetric_squeeze_pgs_stalls_apgd_converges():
 def test_vmap_equals_loop_and_no_recompile():
     problems = [random_problem(s, 8, "under") for s in range(4)]
     W, q, mu, mask = (np.stack(a) for a in zip(*problems, strict=True))
-    batched = jax.jit(jax.vmap(functools.partial(solve_apgd, max_iters=3000, tol=TOL)))(
-        W, q, mu, mask
-    )
+    batched = jax.jit(jax.vmap(functools.partial(solve_apgd, max_iters=3000, tol=TOL)))(W, q, mu, mask)
     assert batched.gamma.shape == (4, 8, 3) and batched.iterations.shape == (4,)
     for i, p in enumerate(problems):
         one = apgd(*p)

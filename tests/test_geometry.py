@@ -117,9 +117,7 @@ def test_volume_and_surface_area_match_hand_formulas(name):
     ret=st.floats(1, 90),
     flat=st.floats(0, 5),
 )
-def test_valid_parameters_give_a_simple_ccw_section(
-    length, thickness, taper, undercut, lead, ret, flat
-):
+def test_valid_parameters_give_a_simple_ccw_section(length, thickness, taper, undercut, lead, ret, flat):
     # The docstring claims only ranges need checking: every valid parameter set gives a simple,
     # counter-clockwise polygon. Check it: positive area, no two non-adjacent edges meet.
     g = Cantilever(length, thickness, 4.0, undercut, lead, ret, flat, taper * thickness)

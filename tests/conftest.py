@@ -1,0 +1,26 @@
+"""Shared fixtures: meshes and assemblies are built once per session (JAX compiles are slow)."""
+
+import numpy as np
+import pytest
+
+import jsnap  # noqa: F401  (enables float64)
+from jsnap import _fem
+from jsnap._geometry import mesh_box
+from jsnap._integrate import SparseBlocks
+
+# The straight reference arm of refs/calculix-cantilever (tests/data/README.md).
+ARM = dict(L=10.0, h=1.2, b=4.0)
+
+
+def free_blocks(asm):
+    f = asm.free
+    return SparseBlocks.from_scipy(*(m[f][:, f] for m in (asm.K_lam, asm.K_mu, asm.M1)))
+
+
+@pytest.fixture(scope="session")
+def small_arm():
+    """A coarse P1 arm (270 free dofs) with its static tip-load deflection."""
+    asm = _fem.assemble(mesh_box(ARM["h"], ARM["b"], ARM["L"], 1.2), "P1")
+    f = _fem.traction_load(asm, lambda x: np.isclose(x[2], ARM["L"]), [1.0, 0.0, 0.0])
+    u = _fem.solve_static(asm, 2200.0, 0.35, f)
+    return asm, free_blocks(asm), f, u
