@@ -26,7 +26,7 @@ def run(blocks, mat, dt, x0, v0, steps, f=None):
 def test_energy_conserved_without_damping(small_arm, E):
     """1e5 steps at dt = 1 ms, 1 MPa to 200 GPa: no growth, no decay beyond round-off.
 
-    Round-off accumulates as ~eps (omega_max / omega_1)^2 sqrt(steps) (docs/pmi.md): on this
+    Round-off accumulates as ~eps (omega_max / omega_1)^2 sqrt(steps) (docs/status.md): on this
     270-dof arm it stays below 1e-7; an implicit-Euler step would lose most of the energy.
     """
     asm, blocks, _f, u = small_arm
