@@ -48,9 +48,15 @@ def main():
     ratio = (d[1] - d[0]) / (d[2] - d[1])
     order = brentq(lambda q: (h[0] ** q - h[1] ** q) / (h[1] ** q - h[2] ** q) - ratio, 0.3, 6)
     conv = d[2] + (d[2] - d[1]) / ((h[1] / h[2]) ** order - 1)
-    out = {"rows": rows, "euler_bernoulli_mm": eb, "timoshenko_mm": tim,
-           "richardson_mm": conv, "observed_order": order, "calculix_converged_mm": 0.7695,
-           "machine": platform.node()}
+    out = {
+        "rows": rows,
+        "euler_bernoulli_mm": eb,
+        "timoshenko_mm": tim,
+        "richardson_mm": conv,
+        "observed_order": order,
+        "calculix_converged_mm": 0.7695,
+        "machine": platform.node(),
+    }
     path = Path(__file__).parent / "results" / "fem_convergence.json"
     path.write_text(json.dumps(out, indent=2))
     print(json.dumps({k: v for k, v in out.items() if k != "rows"}, indent=2))
