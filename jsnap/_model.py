@@ -18,7 +18,7 @@ import numpy as np
 from jsnap._fem import Assembly, assemble
 from jsnap._geometry import Cantilever, TetMesh, mesh_cantilever
 from jsnap._integrate import Material, SparseBlocks
-from jsnap._scene import Scene, SceneError
+from jsnap._scene import Scene, SceneError, connector_geometry
 from jsnap._sdf import MeshSDF, rounded_box_mesh
 
 __all__ = ["Model", "Params", "build"]
@@ -282,17 +282,8 @@ def build(scene: Scene, *, progress: bool = False) -> Model:
     Returns:
         A :class:`Model` pytree (float64 arrays; rollouts cast to ``solver.dtype``).
     """
-    c, s = scene["connector"], scene["solver"]
-    geom = Cantilever(
-        length=c["length"],
-        thickness=c["thickness"],
-        tip_thickness=c["tip_thickness"],
-        width=c["width"],
-        undercut=c["undercut"],
-        lead_angle=c["lead_angle"],
-        return_angle=c["return_angle"],
-        flat=c["flat"],
-    )
+    s = scene["solver"]
+    geom = connector_geometry(scene)
     say = print if progress else (lambda *a, **k: None)
     mesh = mesh_cantilever(geom, s["mesh_size"], s["hook_mesh_size"])
     asm = assemble(mesh, s["element"])

@@ -236,23 +236,21 @@ def _split(dotted: str) -> tuple[str, str]:
     return parts[0], parts[1]
 
 
-def _check_consistency(scene: Scene) -> None:
-    """Checks that involve several keys (geometry the section cannot hold, plug sizes...)."""
-    # Imported here: the geometry module validates the connector and names the key itself.
+def connector_geometry(scene: Scene):
+    """The scene's connector as a :class:`jsnap._geometry.Cantilever` (validated)."""
     from jsnap._geometry import Cantilever
 
     c = scene["connector"]
+    keys = ("length", "thickness", "tip_thickness", "width", "undercut", "lead_angle")
+    return Cantilever(**{k: c[k] for k in keys}, return_angle=c["return_angle"], flat=c["flat"])
+
+
+def _check_consistency(scene: Scene) -> None:
+    """Checks that involve several keys (geometry the section cannot hold, plug sizes...)."""
+    # The geometry module validates the connector and names the key itself.
+    c = scene["connector"]
     try:
-        Cantilever(
-            length=c["length"],
-            thickness=c["thickness"],
-            tip_thickness=c["tip_thickness"],
-            width=c["width"],
-            undercut=c["undercut"],
-            lead_angle=c["lead_angle"],
-            return_angle=c["return_angle"],
-            flat=c["flat"],
-        )
+        connector_geometry(scene)
     except ValueError as err:
         raise SceneError(str(err)) from None
     p = scene["plug"]
