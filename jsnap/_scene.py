@@ -31,7 +31,7 @@ REQUIRED = object()
 # is rejected at load time, naming the key, rather than accepted and silently replaced.
 IMPLEMENTED = {
     ("solver", "method"): ("full",),
-    ("solver", "sdf"): ("analytic", "mesh"),
+    ("solver", "sdf"): ("analytic", "mesh", "neural"),
 }
 
 

@@ -1,0 +1,725 @@
+"""Neural signed distance of the plug: a Flax MLP trained on exact mesh distances.
+
+A drop-in for the exact SDFs of :mod:`jsnap._sdf`, with the same convention: ``φ(p)`` in mm,
+negative inside, for points ``p`` in the plug's frame; the normal is ``∇φ`` (by ``jax.vjp``),
+normalised. :func:`neural_sdf_and_normal` is a pure JAX function of ``(net, points)``: it jits,
+vmaps and differentiates (w.r.t. the points and the weights).
+
+The network (default 3 → 64 → 64 → 64 → 1, softplus with β = 100) sees its input normalised per
+axis to ``[-1, 1]`` over the *training domain*, the mesh's bounding box padded by
+``NeuralSDFConfig.pad``; its output is scaled back to mm. Outside that domain the net is never
+evaluated: ``φ(p) = φ_net(clamp(p)) + |p − clamp(p)|``, continuous, positive and growing like the
+true distance, so points far from the plug can never fake a contact.
+
+Training (host, once per mesh and settings, :func:`train`): points sampled near the surface
+(most of them: offsets along the face normals, half with σ = band/4, half with σ = band) and
+uniformly in the domain, labelled with exact signed distances from our JAX triangle-mesh SDF
+(:class:`jsnap._sdf.MeshSDF`); Adam with a warm-up + cosine learning-rate schedule on an L1
+loss, points farther than ``band`` from the surface weighted down (only contact-relevant
+accuracy matters). Weights are saved as ``.npz`` with a format version, the architecture, the
+normalisation, the hash of the mesh and settings and a checksum (:func:`save`, :func:`load`),
+and cached under that hash (:func:`load_or_train`; ``$JSNAP_CACHE`` or ``~/.cache/jsnap``).
+
+Units: mm.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import tempfile
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import equinox as eqx
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import trimesh
+
+from ._sdf import MeshSDF, mesh_sdf_and_normal
+from ._util import safe_norm
+
+__all__ = [
+    "FORMAT_VERSION",
+    "NeuralSDF",
+    "NeuralSDFConfig",
+    "NeuralSDFFileError",
+    "accuracy_report",
+    "cache_dir",
+    "cache_key",
+    "load",
+    "load_mesh",
+    "load_or_train",
+    "neural_sdf",
+    "neural_sdf_and_normal",
+    "save",
+    "train",
+]
+
+FORMAT_NAME = "jsnap.neural_sdf"
+# Bump when the file layout or the meaning of a stored field changes; older files are rejected.
+FORMAT_VERSION = 1
+
+ACTIVATIONS = ("softplus", "silu", "gelu", "tanh")
+
+
+class NeuralSDFFileError(ValueError):
+    """A weights file is unreadable, corrupt, of another format version, or for another mesh."""
+
+
+# --------------------------------------------------------------------------------------------
+# Settings and network
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class NeuralSDFConfig:
+    """Architecture and training settings (all part of the cache key). Lengths in mm.
+
+    Attributes:
+        width: neurons per hidden layer.
+        depth: number of hidden layers.
+        activation: one of ``softplus`` (``softplus(β x)/β``, a smoothed ReLU), ``silu``,
+            ``gelu``, ``tanh``.
+        softplus_beta: β of the softplus activation (in normalised input units).
+        steps: Adam steps.
+        batch: points per step.
+        learning_rate: peak learning rate (after ``warmup`` steps, then cosine decay to 1 %).
+        warmup: linear warm-up steps.
+        samples: labelled training points (exact distances), drawn once.
+        band: half-width of the contact-relevant shell around the surface, mm: accuracy is
+            optimised and reported for ``|φ| ≤ band``.
+        pad: padding of the mesh's bounding box that makes the training domain, mm (≥ band).
+        box_fraction: fraction of the samples drawn uniformly in the domain (the rest near the
+            surface).
+        far_weight: loss weight of points farther than ``band`` from the surface.
+        seed: seed of the sampling, the initial weights and the batches.
+    """
+
+    width: int = 64
+    depth: int = 3
+    activation: str = "softplus"
+    softplus_beta: float = 100.0
+    steps: int = 3000
+    batch: int = 2048
+    learning_rate: float = 5e-3
+    warmup: int = 100
+    samples: int = 100_000
+    band: float = 0.2
+    pad: float = 0.3
+    box_fraction: float = 0.15
+    far_weight: float = 0.1
+    seed: int = 0
+
+    def __post_init__(self):
+        positive_int = ("width", "depth", "steps", "batch", "samples")
+        for name in positive_int:
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"NeuralSDFConfig.{name} = {v!r}: must be an integer >= 1")
+        for name in ("warmup", "seed"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise ValueError(f"NeuralSDFConfig.{name} = {v!r}: must be an integer >= 0")
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(
+                f"NeuralSDFConfig.activation = {self.activation!r}: must be one of {', '.join(ACTIVATIONS)}"
+            )
+        for name in ("softplus_beta", "learning_rate", "band"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and np.isfinite(v) and v > 0):
+                raise ValueError(f"NeuralSDFConfig.{name} = {v!r}: must be a finite number > 0")
+        if not (isinstance(self.pad, int | float) and np.isfinite(self.pad) and self.pad >= self.band):
+            raise ValueError(
+                f"NeuralSDFConfig.pad = {self.pad!r}: must be >= band = {self.band} (the contact "
+                "shell must lie inside the training domain)"
+            )
+        for name in ("box_fraction", "far_weight"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and 0.0 <= v <= 1.0):
+                raise ValueError(f"NeuralSDFConfig.{name} = {v!r}: must be in [0, 1]")
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> NeuralSDFConfig:
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"unknown NeuralSDFConfig keys: {', '.join(sorted(unknown))}")
+        return cls(**d)
+
+    @property
+    def architecture(self) -> dict:
+        return dict(
+            inputs=3,
+            width=self.width,
+            depth=self.depth,
+            outputs=1,
+            activation=self.activation,
+            softplus_beta=self.softplus_beta,
+        )
+
+
+def _activation(name: str, beta: float):
+    if name == "softplus":
+        return lambda x: jax.nn.softplus(beta * x) / beta
+    return {"silu": jax.nn.silu, "gelu": jax.nn.gelu, "tanh": jnp.tanh}[name]
+
+
+class _MLP(nn.Module):
+    """``depth`` hidden Dense layers of ``width`` neurons, then a scalar; input normalised."""
+
+    width: int
+    depth: int
+    activation: str
+    beta: float
+
+    @nn.compact
+    def __call__(self, x):
+        act = _activation(self.activation, self.beta)
+        for i in range(self.depth):
+            x = act(nn.Dense(self.width, name=f"hidden_{i}")(x))
+        return nn.Dense(1, name="out")(x)[..., 0]
+
+
+class NeuralSDF(eqx.Module):
+    """A trained neural SDF as a pytree: weights and normalisation are array leaves.
+
+    Attributes:
+        params: Flax parameter tree of the MLP (``{"hidden_0": {"kernel", "bias"}, …, "out"}``).
+        center: (3,) centre of the training domain, mm.
+        half: (3,) half extents of the training domain (the input normalisation), mm.
+        out_scale: () mm per unit of network output.
+        width, depth, activation, softplus_beta: architecture (static).
+    """
+
+    params: dict
+    center: jax.Array
+    half: jax.Array
+    out_scale: jax.Array
+    width: int = eqx.field(static=True)
+    depth: int = eqx.field(static=True)
+    activation: str = eqx.field(static=True)
+    softplus_beta: float = eqx.field(static=True)
+
+    @property
+    def mlp(self) -> _MLP:
+        return _MLP(self.width, self.depth, self.activation, self.softplus_beta)
+
+    def astype(self, dtype) -> NeuralSDF:
+        """The same SDF with every array cast to ``dtype`` (e.g. ``jnp.float64``)."""
+        return jax.tree.map(lambda x: x.astype(dtype), self)
+
+
+def _template_params(config: NeuralSDFConfig, key=None):
+    mlp = _MLP(config.width, config.depth, config.activation, config.softplus_beta)
+    x = jnp.zeros((1, 3), jnp.float32)
+    if key is None:
+        return jax.eval_shape(lambda: mlp.init(jax.random.PRNGKey(0), x))["params"]
+    return mlp.init(key, x)["params"]
+
+
+# --------------------------------------------------------------------------------------------
+# Queries (pure JAX)
+# --------------------------------------------------------------------------------------------
+
+
+def _phi(net: NeuralSDF, p):
+    """φ (N,) of points p (N, 3); outside the domain, distance to it plus φ at the clamp."""
+    lo = net.center - net.half
+    hi = net.center + net.half
+    q = jnp.clip(p, lo, hi)
+    y = net.mlp.apply({"params": net.params}, (q - net.center) / net.half)
+    return y * net.out_scale + safe_norm(p - q)
+
+
+def _phi_and_normal(net: NeuralSDF, p):
+    phi, vjp = jax.vjp(lambda x: _phi(net, x), p)
+    (g,) = vjp(jnp.ones_like(phi))
+    norm = safe_norm(g, keepdims=True)
+    # A zero gradient (measure zero for a trained net) gets the first axis, as the analytic
+    # SDF's tie-breaking does: a unit normal everywhere keeps contact frames finite.
+    fallback = jnp.zeros_like(g).at[:, 0].set(1.0)
+    n = jnp.where(norm > 0, g / jnp.where(norm > 0, norm, 1.0), fallback)
+    return phi, n
+
+
+# Jitted so that eager calls compile once per shape instead of dispatching op by op.
+_phi_jit = jax.jit(_phi)
+_phi_and_normal_jit = jax.jit(_phi_and_normal)
+
+
+def _points(net: NeuralSDF, p):
+    arrays = [x for x in (p, net.center) if isinstance(x, jax.Array | np.ndarray)]
+    dtype = jnp.result_type(*arrays)
+    if not jnp.issubdtype(dtype, jnp.floating):
+        dtype = net.center.dtype
+    p = jnp.asarray(p, dtype)
+    if p.shape[-1:] != (3,):
+        raise ValueError(f"points must have shape (..., 3), got {p.shape}")
+    return p.reshape(-1, 3), p.shape[:-1]
+
+
+def neural_sdf(net: NeuralSDF, p):
+    """Signed distance of points w.r.t. the plug, by the network.
+
+    Args:
+        net: :class:`NeuralSDF`.
+        p: points in the plug frame, (..., 3), mm (computed in the common dtype of ``p`` and the
+            weights).
+
+    Returns:
+        φ (...), mm, negative inside.
+    """
+    q, shape = _points(net, p)
+    return _phi_jit(net, q).reshape(shape)
+
+
+def neural_sdf_and_normal(net: NeuralSDF, p):
+    """Signed distance and outward unit normal ``∇φ / |∇φ|`` of points, by the network.
+
+    Pure JAX: jit, vmap and grad (w.r.t. ``p`` and ``net``) work; the normal is the
+    normalised gradient of the returned φ (``jax.vjp``).
+
+    Args: as :func:`neural_sdf`.
+
+    Returns:
+        ``(φ, n)``: φ (...) mm, negative inside; n (..., 3) unit vectors.
+    """
+    q, shape = _points(net, p)
+    phi, n = _phi_and_normal_jit(net, q)
+    return phi.reshape(shape), n.reshape(*shape, 3)
+
+
+# --------------------------------------------------------------------------------------------
+# Meshes, hashes, cache
+# --------------------------------------------------------------------------------------------
+
+
+def _check_mesh(mesh, name="mesh") -> MeshSDF:
+    """The exact SDF of ``mesh``; ValueError naming ``name`` if it cannot have one."""
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise TypeError(f"{name}: expected a trimesh.Trimesh, got {type(mesh).__name__}")
+    if len(mesh.faces) == 0:
+        raise ValueError(f"{name}: the mesh has no triangles")
+    try:
+        return MeshSDF.from_trimesh(mesh)
+    except ValueError as err:
+        raise ValueError(f"{name}: {err}") from None
+
+
+def load_mesh(path) -> trimesh.Trimesh:
+    """Read a closed plug surface (STL, OBJ, PLY, … anything trimesh reads), in mm.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: unreadable, no triangles, not watertight or inconsistently wound (the
+            message names the file and the problem).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such mesh file")
+    try:
+        mesh = trimesh.load(path, force="mesh")
+    except Exception as err:  # trimesh raises many types for unreadable files
+        raise ValueError(f"{path}: cannot read a triangle mesh ({type(err).__name__}: {err})") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise ValueError(f"{path}: the file holds no triangles")
+    _check_mesh(mesh, str(path))
+    return mesh
+
+
+def mesh_hash(mesh: trimesh.Trimesh) -> str:
+    """SHA-256 of the mesh's vertices (float64) and faces (int64)."""
+    h = hashlib.sha256()
+    for a in (np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)):
+        h.update(str(a.shape).encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+def cache_key(mesh: trimesh.Trimesh, config: NeuralSDFConfig) -> str:
+    """SHA-256 of everything the weights depend on: format version, mesh, settings."""
+    blob = json.dumps(
+        dict(format=FORMAT_NAME, version=FORMAT_VERSION, mesh=mesh_hash(mesh), config=config.to_dict()),
+        sort_keys=True,
+    )
+    return hashlib.sha256(blob.encode()).hexdigest()
+
+
+def cache_dir() -> Path:
+    """Where trained weights are cached: ``$JSNAP_CACHE`` or ``~/.cache/jsnap``."""
+    root = os.environ.get("JSNAP_CACHE")
+    return Path(root) if root else Path.home() / ".cache" / "jsnap"
+
+
+def cache_path(key: str) -> Path:
+    return cache_dir() / "neural_sdf" / f"{key[:32]}.npz"
+
+
+# --------------------------------------------------------------------------------------------
+# Training and evaluation
+# --------------------------------------------------------------------------------------------
+
+
+def _sample_points(mesh, exact: MeshSDF, config: NeuralSDFConfig, n: int, rng, progress=False):
+    """Training points (n, 3) with exact φ (n,), float64."""
+    lo = mesh.bounds[0] - config.pad
+    hi = mesh.bounds[1] + config.pad
+    n_box = round(n * config.box_fraction)
+    n_near = n - n_box
+    surf, face = trimesh.sample.sample_surface(mesh, n_near, seed=int(rng.integers(2**31)))
+    sigma = np.where(rng.random(n_near) < 0.5, config.band / 4, config.band)
+    near = surf + mesh.face_normals[face] * (rng.normal(size=n_near) * sigma)[:, None]
+    box = rng.uniform(lo, hi, (n_box, 3))
+    x = np.clip(np.concatenate([near, box]), lo, hi)
+    return x, _exact_phi(exact, x, progress, "labelling (exact mesh SDF)")[0]
+
+
+def _exact_phi(exact: MeshSDF, x, progress=False, desc=""):
+    from tqdm.auto import tqdm
+
+    chunk = 8192
+    phi, nrm = [], []
+    with tqdm(total=len(x), desc=desc, unit="pt", disable=not progress, leave=False) as bar:
+        for i in range(0, len(x), chunk):
+            f, n = mesh_sdf_and_normal(exact, x[i : i + chunk])
+            phi.append(np.asarray(f))
+            nrm.append(np.asarray(n))
+            bar.update(len(phi[-1]))
+    return np.concatenate(phi), np.concatenate(nrm)
+
+
+def _band_points(mesh, exact: MeshSDF, band: float, n: int, rng):
+    """``n`` points uniform in the shell ``|φ| ≤ band``, with exact φ and normals."""
+    lo = mesh.bounds[0] - band
+    hi = mesh.bounds[1] + band
+    xs, fs, ns = [], [], []
+    have = 0
+    for _ in range(100):
+        x = rng.uniform(lo, hi, (max(2 * (n - have), 1024), 3))
+        f, nr = _exact_phi(exact, x)
+        keep = np.abs(f) <= band
+        xs.append(x[keep])
+        fs.append(f[keep])
+        ns.append(nr[keep])
+        have += int(keep.sum())
+        if have >= n:
+            break
+    return np.concatenate(xs)[:n], np.concatenate(fs)[:n], np.concatenate(ns)[:n]
+
+
+def accuracy_report(net: NeuralSDF, mesh, band: float = 0.2, points: int = 20_000, seed: int = 1234) -> dict:
+    """Errors of the net against the exact mesh SDF, uniformly over the shell ``|φ| ≤ band``.
+
+    Returns a dict: ``points``, ``band_mm``; distance errors ``mae_mm``, ``rmse_mm``,
+    ``p95_mm``, ``max_mm``, ``mae_surface_mm`` (over ``|φ| ≤ band/10``); normal errors in degrees
+    ``normal_median_deg``, ``normal_p95_deg``.
+    """
+    exact = _check_mesh(mesh)
+    x, f, n = _band_points(mesh, exact, band, points, np.random.default_rng(seed))
+    pf, pn = neural_sdf_and_normal(net, jnp.asarray(x, jnp.float32))
+    err = np.abs(np.asarray(pf, np.float64) - f)
+    cos = np.clip(np.sum(np.asarray(pn, np.float64) * n, axis=1), -1.0, 1.0)
+    ang = np.degrees(np.arccos(cos))
+    surf = np.abs(f) <= band / 10
+    return dict(
+        points=len(x),
+        band_mm=float(band),
+        mae_mm=float(err.mean()),
+        rmse_mm=float(np.sqrt(np.mean(err**2))),
+        p95_mm=float(np.percentile(err, 95)),
+        max_mm=float(err.max()),
+        mae_surface_mm=float(err[surf].mean()) if surf.any() else float("nan"),
+        normal_median_deg=float(np.median(ang)),
+        normal_p95_deg=float(np.percentile(ang, 95)),
+    )
+
+
+def train(mesh, config: NeuralSDFConfig | None = None, *, progress: bool = False, evaluate: bool = True):
+    """Train a neural SDF of a closed triangle mesh (host; float32 weights).
+
+    Args:
+        mesh: ``trimesh.Trimesh``, watertight and consistently wound, in mm.
+        config: settings (default :class:`NeuralSDFConfig()`).
+        progress: show progress bars (tqdm, on stderr).
+        evaluate: also measure the accuracy (:func:`accuracy_report` over the config's band).
+
+    Returns:
+        ``(net, info)``: the :class:`NeuralSDF` and a dict with ``loss`` (per-step training
+        loss history, list), ``seconds`` (wall time of labelling + training), ``report`` (the
+        accuracy report, or None), ``mesh_hash``, ``key``, ``config``.
+
+    Raises:
+        ValueError: the mesh is not watertight or its winding is inconsistent.
+    """
+    import optax
+    from tqdm.auto import tqdm
+
+    config = config or NeuralSDFConfig()
+    exact = _check_mesh(mesh)
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(config.seed)
+    x, phi = _sample_points(mesh, exact, config, config.samples, rng, progress)
+    weight = np.where(np.abs(phi) <= config.band, 1.0, config.far_weight)
+
+    lo = mesh.bounds[0] - config.pad
+    hi = mesh.bounds[1] + config.pad
+    center = (lo + hi) / 2
+    half = (hi - lo) / 2
+    key = jax.random.PRNGKey(config.seed)
+    key, init_key = jax.random.split(key)
+    net = NeuralSDF(
+        params=_template_params(config, init_key),
+        center=jnp.asarray(center, jnp.float32),
+        half=jnp.asarray(half, jnp.float32),
+        # Output in units of the thinnest half extent: O(1) targets for any mesh size.
+        out_scale=jnp.asarray(half.min(), jnp.float32),
+        width=config.width,
+        depth=config.depth,
+        activation=config.activation,
+        softplus_beta=float(config.softplus_beta),
+    )
+    schedule = optax.warmup_cosine_decay_schedule(
+        0.0,
+        config.learning_rate,
+        config.warmup,
+        max(config.steps, config.warmup + 1),
+        config.learning_rate * 0.01,
+    )
+    opt = optax.adam(schedule)
+
+    def loss_fn(params, x, y, w):
+        pred = _phi(eqx.tree_at(lambda m: m.params, net, params), x)
+        return jnp.mean(w * jnp.abs(pred - y))
+
+    def run(params, opt_state, key, data, length):
+        def body(carry, k):
+            params, opt_state = carry
+            idx = jax.random.randint(k, (config.batch,), 0, data[0].shape[0])
+            loss, g = jax.value_and_grad(loss_fn)(params, *(a[idx] for a in data))
+            updates, opt_state = opt.update(g, opt_state, params)
+            return (optax.apply_updates(params, updates), opt_state), loss
+
+        (params, opt_state), losses = jax.lax.scan(body, (params, opt_state), jax.random.split(key, length))
+        return params, opt_state, losses
+
+    # The scan length is static: one compile for the chunks, one more for a shorter last one.
+    run = jax.jit(run, static_argnums=4)
+    data = (jnp.asarray(x, jnp.float32), jnp.asarray(phi, jnp.float32), jnp.asarray(weight, jnp.float32))
+    params = net.params
+    opt_state = opt.init(params)
+    losses = []
+    chunk = 100
+    with tqdm(total=config.steps, desc="training neural SDF", unit="step", disable=not progress) as bar:
+        done = 0
+        while done < config.steps:
+            length = min(chunk, config.steps - done)
+            key, k = jax.random.split(key)
+            params, opt_state, ls = run(params, opt_state, k, data, length)
+            ls = np.asarray(ls)
+            losses.extend(ls.tolist())
+            done += length
+            bar.update(length)
+            bar.set_postfix(loss_mm=f"{ls.mean():.2e}")
+    if not np.all(np.isfinite(losses)):
+        raise RuntimeError("neural SDF training diverged (non-finite loss): lower learning_rate")
+    net = eqx.tree_at(lambda m: m.params, net, params)
+    seconds = time.perf_counter() - t0
+    report = accuracy_report(net, mesh, config.band) if evaluate else None
+    info = dict(
+        loss=losses,
+        seconds=seconds,
+        report=report,
+        mesh_hash=mesh_hash(mesh),
+        key=cache_key(mesh, config),
+        config=config.to_dict(),
+    )
+    return net, info
+
+
+# --------------------------------------------------------------------------------------------
+# Files
+# --------------------------------------------------------------------------------------------
+
+
+def _named_leaves(params) -> dict:
+    """``{"param/<layer>/<name>": leaf}`` in ``tree_flatten`` order."""
+    leaves = jax.tree_util.tree_flatten_with_path(params)[0]
+    return {"param/" + "/".join(str(k.key) for k in path): leaf for path, leaf in leaves}
+
+
+def _checksum(meta_json: str, arrays: dict) -> str:
+    h = hashlib.sha256(meta_json.encode())
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        h.update(f"{name}|{a.dtype.str}|{a.shape}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def save(net: NeuralSDF, path, *, key: str, mesh_hash: str, config: NeuralSDFConfig, extra=None) -> Path:
+    """Write the weights to ``path`` (``.npz``), atomically.
+
+    The file holds ``format``, ``format_version``, ``meta`` (JSON: architecture, settings, mesh
+    hash, cache key, ``extra``), ``checksum`` (SHA-256 of ``meta`` and every array), the
+    normalisation (``center``, ``half``, ``out_scale``) and the weights (``param/<layer>/<name>``).
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arrays = {
+        "center": np.asarray(net.center),
+        "half": np.asarray(net.half),
+        "out_scale": np.asarray(net.out_scale),
+        **{k: np.asarray(v) for k, v in _named_leaves(net.params).items()},
+    }
+    meta = dict(
+        architecture=config.architecture,
+        config=config.to_dict(),
+        mesh_hash=mesh_hash,
+        key=key,
+        extra=extra or {},
+    )
+    meta_json = json.dumps(meta, sort_keys=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(
+                fh,
+                format=np.asarray(FORMAT_NAME),
+                format_version=np.asarray(FORMAT_VERSION),
+                meta=np.asarray(meta_json),
+                checksum=np.asarray(_checksum(meta_json, arrays)),
+                **arrays,
+            )
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def load(path, *, key: str | None = None) -> tuple[NeuralSDF, dict]:
+    """Read weights written by :func:`save`, verifying format, checksum and (if given) key.
+
+    Args:
+        path: ``.npz`` file.
+        key: the :func:`cache_key` the weights must have been trained for (mesh and settings);
+            None skips this check.
+
+    Returns:
+        ``(net, meta)``.
+
+    Raises:
+        FileNotFoundError: no such file.
+        NeuralSDFFileError: unreadable or truncated, not a jsnap neural SDF, another format
+            version, checksum mismatch (corrupt), arrays that do not fit the architecture, or
+            trained for another mesh or settings than ``key``.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such neural SDF weights file")
+
+    def bad(why):
+        return NeuralSDFFileError(f"{path}: {why}; not using it (retrain with `jsnap train-sdf`)")
+
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except Exception as err:  # zipfile, zlib, OSError, ValueError ... all mean "unreadable"
+        raise bad(f"unreadable or corrupt weights file ({type(err).__name__}: {err})") from None
+    if "format" not in data or str(data["format"]) != FORMAT_NAME:
+        raise bad("not a jsnap neural SDF weights file (no 'format' = 'jsnap.neural_sdf')")
+    version = int(data.get("format_version", -1))
+    if version != FORMAT_VERSION:
+        raise bad(f"format version {version}, this jsnap reads version {FORMAT_VERSION}")
+    try:
+        meta_json = str(data.pop("meta"))
+        checksum = str(data.pop("checksum"))
+        meta = json.loads(meta_json)
+        config = NeuralSDFConfig.from_dict(meta["config"])
+    except (KeyError, ValueError, TypeError) as err:
+        raise bad(f"corrupt metadata ({type(err).__name__}: {err})") from None
+    for k in ("format", "format_version"):
+        data.pop(k)
+    if _checksum(meta_json, data) != checksum:
+        raise bad("checksum mismatch: the file is corrupt")
+    if key is not None and meta.get("key") != key:
+        raise bad(
+            f"trained for another mesh or other settings (key {str(meta.get('key'))[:12]}…, "
+            f"expected {key[:12]}…)"
+        )
+    template = _template_params(config)
+    expected = _named_leaves(template)
+    got = {k: v for k, v in data.items() if k.startswith("param/")}
+    if set(got) != set(expected) or any(got[k].shape != expected[k].shape for k in expected):
+        raise bad(f"weights do not match the architecture {config.architecture}")
+    params = jax.tree_util.tree_unflatten(
+        jax.tree_util.tree_structure(template), [jnp.asarray(got[k]) for k in expected]
+    )
+    net = NeuralSDF(
+        params=params,
+        center=jnp.asarray(data["center"]),
+        half=jnp.asarray(data["half"]),
+        out_scale=jnp.asarray(data["out_scale"]),
+        width=config.width,
+        depth=config.depth,
+        activation=config.activation,
+        softplus_beta=float(config.softplus_beta),
+    )
+    return net, meta
+
+
+def load_or_train(
+    mesh, config: NeuralSDFConfig | None = None, *, progress: bool = False, retrain: bool = False
+):
+    """The cached neural SDF of ``mesh`` for ``config``, training (and caching) it if needed.
+
+    The cache file is ``cache_dir()/neural_sdf/<key>.npz`` with ``key = cache_key(mesh,
+    config)``. A cached file that is corrupt or was written for something else is never used:
+    it is reported with a warning and replaced by a freshly trained one.
+
+    Returns:
+        ``(net, info)``: info has ``path``, ``cached`` (bool), ``key``, ``mesh_hash``, ``config``,
+        ``report`` (accuracy at training time) and ``seconds`` (training time, when trained).
+    """
+    config = config or NeuralSDFConfig()
+    _check_mesh(mesh)
+    key = cache_key(mesh, config)
+    path = cache_path(key)
+    if path.is_file() and not retrain:
+        try:
+            net, meta = load(path, key=key)
+            extra = meta.get("extra", {})
+            return net, dict(
+                path=path,
+                cached=True,
+                key=key,
+                mesh_hash=meta["mesh_hash"],
+                config=meta["config"],
+                report=extra.get("report"),
+                seconds=extra.get("seconds"),
+            )
+        except NeuralSDFFileError as err:
+            warnings.warn(f"{err}; retraining", stacklevel=2)
+    net, info = train(mesh, config, progress=progress)
+    save(
+        net,
+        path,
+        key=key,
+        mesh_hash=info["mesh_hash"],
+        config=config,
+        extra=dict(
+            report=info["report"], seconds=info["seconds"], final_loss=float(np.mean(info["loss"][-100:]))
+        ),
+    )
+    info = {k: v for k, v in info.items() if k != "loss"}
+    return net, dict(info, path=path, cached=False)
