@@ -18,6 +18,7 @@ import numpy as np
 from jsnap._fem import Assembly, assemble
 from jsnap._geometry import Cantilever, TetMesh, mesh_cantilever
 from jsnap._integrate import Material, SparseBlocks
+from jsnap._neural_sdf import NeuralSDF, load_or_train
 from jsnap._scene import Scene, SceneError, connector_geometry
 from jsnap._sdf import MeshSDF, rounded_box_mesh
 
@@ -96,6 +97,7 @@ class Model(eqx.Module):
         plug_half: (3,) plug half extents, mm.   plug_radius: () fillet, mm.
         plug_start: (3,) plug centre at t = 0, mm.
         mesh_sdf: exact triangle-mesh SDF of the plug (or None for the analytic SDF).
+        neural_sdf: trained neural SDF of the plug (``solver.sdf = "neural"``, else None).
         params: the scene's physical parameters.
     Static fields: dt (s), sizes, solver choices.
     """
@@ -129,6 +131,7 @@ class Model(eqx.Module):
     dtype: str = eqx.field(static=True)
     method: str = eqx.field(static=True)
     host: HostData = eqx.field(static=True)
+    neural_sdf: NeuralSDF | None = None
 
     @property
     def n_dof(self) -> int:
@@ -325,6 +328,10 @@ def build(scene: Scene, *, progress: bool = False) -> Model:
 
     plug_mesh = rounded_box_mesh(half, radius)
     mesh_sdf = MeshSDF.from_trimesh(plug_mesh) if s["sdf"] == "mesh" else None
+    neural_sdf = None
+    if s["sdf"] == "neural":  # trained once per plug mesh and settings, then cached on disk
+        neural_sdf, info = load_or_train(plug_mesh, progress=progress)
+        say(f"jsnap: neural SDF {'loaded from' if info['cached'] else 'trained, cached in'} {info['path']}")
     say(f"jsnap: {X.shape[0]} contact candidate points on {faces.shape[0]} faces")
     del normals  # the kernel uses the deformed face normal
 
@@ -342,6 +349,7 @@ def build(scene: Scene, *, progress: bool = False) -> Model:
         plug_radius=jnp.asarray(radius, jnp.float64),
         plug_start=jnp.asarray(start),
         mesh_sdf=mesh_sdf,
+        neural_sdf=neural_sdf,
         params=Params.from_scene(scene),
         coupling=jnp.asarray([m["coupling_stiffness"], m["coupling_damping"], m["plug_mass"]]),
         dt=s["dt"],

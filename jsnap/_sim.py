@@ -26,6 +26,7 @@ import numpy as np
 from jsnap._contact import solve_apgd, solve_pgs
 from jsnap._integrate import PMIOperator, energy, pmi_operator, pmi_rhs
 from jsnap._model import Model, Params
+from jsnap._neural_sdf import neural_sdf_and_normal
 from jsnap._sdf import mesh_sdf_and_normal, rounded_box_sdf_and_normal
 from jsnap._util import safe_norm
 
@@ -137,6 +138,8 @@ def init_state(model: Model, dtype=None) -> State:
 def _plug_sdf(model: Model, q):
     if model.sdf == "mesh":
         return mesh_sdf_and_normal(model.mesh_sdf, q)
+    if model.sdf == "neural":
+        return neural_sdf_and_normal(model.neural_sdf, q)
     return rounded_box_sdf_and_normal(q, model.plug_half, model.plug_radius)
 
 
