@@ -1,4 +1,4 @@
-"""Command line: ``jsnap simulate [SCENE.toml] [--out DIR] [--json]``."""
+"""Command line: ``jsnap simulate [SCENE.toml] [--out DIR] [--json]``, ``jsnap train-sdf [MESH]``."""
 
 from __future__ import annotations
 
@@ -177,6 +177,77 @@ def simulate(args) -> int:
     return 0
 
 
+# NeuralSDFConfig fields settable from `jsnap train-sdf`.
+_SDF_SETTINGS = {
+    "width": int,
+    "depth": int,
+    "activation": str,
+    "steps": int,
+    "batch": int,
+    "samples": int,
+    "seed": int,
+}
+
+
+def train_sdf(args) -> int:
+    """``jsnap train-sdf [MESH]``: train (or load from the cache) the neural SDF of a plug."""
+    from jsnap import _neural_sdf as nsdf
+
+    try:
+        settings = {k: getattr(args, k) for k in _SDF_SETTINGS if getattr(args, k) is not None}
+        config = nsdf.NeuralSDFConfig(**settings)
+        if args.mesh is None:
+            import jsnap
+            from jsnap._model import _plug_geometry
+            from jsnap._scene import connector_geometry
+            from jsnap._sdf import rounded_box_mesh
+
+            scene = jsnap.load_scene(args.scene)
+            half, radius, _ = _plug_geometry(scene, connector_geometry(scene))
+            mesh = rounded_box_mesh(half, radius)
+            what = f"the plug of {scene.source}"
+        else:
+            mesh = nsdf.load_mesh(args.mesh)
+            what = args.mesh
+        net, info = nsdf.load_or_train(mesh, config, progress=not args.json, retrain=args.retrain)
+    except (ValueError, FileNotFoundError) as err:
+        print(f"jsnap: error: {err}", file=sys.stderr)
+        return 2
+    if args.out:
+        nsdf.save(
+            net,
+            args.out,
+            key=info["key"],
+            mesh_hash=info["mesh_hash"],
+            config=config,
+            extra=dict(report=info["report"], seconds=info["seconds"]),
+        )
+    r = info["report"]
+    summary = dict(
+        mesh=what,
+        triangles=len(mesh.faces),
+        cached=info["cached"],
+        train_seconds=info["seconds"],
+        weights=str(info["path"]),
+        out=args.out,
+        architecture=config.architecture,
+        accuracy=r,
+    )
+    if args.json:
+        print(json.dumps(summary))
+        return 0
+    how = "loaded from the cache" if info["cached"] else f"trained in {info['seconds']:.1f} s"
+    print(f"jsnap: neural SDF of {what} ({len(mesh.faces)} triangles): {how}")
+    print(f"  weights: {info['path']}" + (f" (copied to {args.out})" if args.out else ""))
+    if r:
+        print(
+            f"  accuracy vs the exact mesh SDF over |phi| <= {r['band_mm']:g} mm ({r['points']} points): "
+            f"mean |error| {r['mae_mm']:.2e} mm (p95 {r['p95_mm']:.2e}, max {r['max_mm']:.2e}); "
+            f"normal error median {r['normal_median_deg']:.2f} deg (p95 {r['normal_p95_deg']:.1f})"
+        )
+    return 0
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="jsnap", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -185,7 +256,17 @@ def main(argv=None) -> int:
     sim.add_argument("--method", choices=["full", "segmented", "reduced"], default=None)
     sim.add_argument("--out", default="jsnap-out", help="output directory (default jsnap-out)")
     sim.add_argument("--json", action="store_true", help="print a JSON summary to stdout")
+    tr = sub.add_parser("train-sdf", help="train the neural SDF of a plug mesh (cached)")
+    tr.add_argument("mesh", nargs="?", default=None, help="closed STL/OBJ/PLY, mm (default: the scene's plug)")
+    tr.add_argument("--scene", default=None, help="scene whose plug to use when no MESH (default scene)")
+    tr.add_argument("--out", default=None, help="also write the weights to this .npz file")
+    tr.add_argument("--retrain", action="store_true", help="train even if cached weights exist")
+    tr.add_argument("--json", action="store_true", help="print a JSON summary to stdout")
+    for name, kind in _SDF_SETTINGS.items():
+        tr.add_argument(f"--{name}", type=kind, default=None, help="training setting (see docs/neural_sdf.md)")
     args = parser.parse_args(argv)
+    if args.command == "train-sdf":
+        return train_sdf(args)
     from jsnap._scene import SceneError
 
     try:

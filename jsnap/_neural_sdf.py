@@ -33,6 +33,7 @@ import tempfile
 import time
 import warnings
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import equinox as eqx
@@ -388,14 +389,17 @@ def _exact_phi(exact: MeshSDF, x, progress=False, desc=""):
     from tqdm.auto import tqdm
 
     chunk = 8192
+    n = len(x)
+    # Fixed-size chunks (the last padded with copies of point 0): one compile per mesh.
+    xp = np.concatenate([x, np.broadcast_to(x[:1], (-n % chunk, 3))]) if n > chunk else x
     phi, nrm = [], []
-    with tqdm(total=len(x), desc=desc, unit="pt", disable=not progress, leave=False) as bar:
-        for i in range(0, len(x), chunk):
-            f, n = mesh_sdf_and_normal(exact, x[i : i + chunk])
+    with tqdm(total=n, desc=desc, unit="pt", disable=not progress, leave=False) as bar:
+        for i in range(0, len(xp), chunk):
+            f, g = mesh_sdf_and_normal(exact, xp[i : i + chunk])
             phi.append(np.asarray(f))
-            nrm.append(np.asarray(n))
-            bar.update(len(phi[-1]))
-    return np.concatenate(phi), np.concatenate(nrm)
+            nrm.append(np.asarray(g))
+            bar.update(min(chunk, n - i))
+    return np.concatenate(phi)[:n], np.concatenate(nrm)[:n]
 
 
 def _band_points(mesh, exact: MeshSDF, band: float, n: int, rng):
@@ -444,7 +448,51 @@ def accuracy_report(net: NeuralSDF, mesh, band: float = 0.2, points: int = 20_00
     )
 
 
-def train(mesh, config: NeuralSDFConfig | None = None, *, progress: bool = False, evaluate: bool = True):
+def _optimizer(config: NeuralSDFConfig):
+    import optax
+
+    schedule = optax.warmup_cosine_decay_schedule(
+        0.0,
+        config.learning_rate,
+        config.warmup,
+        max(config.steps, config.warmup + 1),
+        config.learning_rate * 0.01,
+    )
+    return optax.adam(schedule)
+
+
+# Module level with the settings and the chunk length static, so that training again with the
+# same settings and data size (another mesh, a retrain) reuses the compiled loop.
+@partial(jax.jit, static_argnames=("config", "length"))
+def _train_chunk(net, params, opt_state, key, data, *, config, length):
+    """``length`` Adam steps on random batches of ``data = (x, φ, weight)``; L1 loss in mm."""
+    import optax
+
+    opt = _optimizer(config)
+
+    def loss_fn(params, x, y, w):
+        pred = _phi(eqx.tree_at(lambda m: m.params, net, params), x)
+        return jnp.mean(w * jnp.abs(pred - y))
+
+    def body(carry, k):
+        params, opt_state = carry
+        idx = jax.random.randint(k, (config.batch,), 0, data[0].shape[0])
+        loss, g = jax.value_and_grad(loss_fn)(params, *(a[idx] for a in data))
+        updates, opt_state = opt.update(g, opt_state, params)
+        return (optax.apply_updates(params, updates), opt_state), loss
+
+    (params, opt_state), losses = jax.lax.scan(body, (params, opt_state), jax.random.split(key, length))
+    return params, opt_state, losses
+
+
+def train(
+    mesh,
+    config: NeuralSDFConfig | None = None,
+    *,
+    progress: bool = False,
+    evaluate: bool = True,
+    report_points: int = 20_000,
+):
     """Train a neural SDF of a closed triangle mesh (host; float32 weights).
 
     Args:
@@ -452,6 +500,7 @@ def train(mesh, config: NeuralSDFConfig | None = None, *, progress: bool = False
         config: settings (default :class:`NeuralSDFConfig()`).
         progress: show progress bars (tqdm, on stderr).
         evaluate: also measure the accuracy (:func:`accuracy_report` over the config's band).
+        report_points: points of that accuracy report.
 
     Returns:
         ``(net, info)``: the :class:`NeuralSDF` and a dict with ``loss`` (per-step training
@@ -461,7 +510,6 @@ def train(mesh, config: NeuralSDFConfig | None = None, *, progress: bool = False
     Raises:
         ValueError: the mesh is not watertight or its winding is inconsistent.
     """
-    import optax
     from tqdm.auto import tqdm
 
     config = config or NeuralSDFConfig()
@@ -488,35 +536,9 @@ def train(mesh, config: NeuralSDFConfig | None = None, *, progress: bool = False
         activation=config.activation,
         softplus_beta=float(config.softplus_beta),
     )
-    schedule = optax.warmup_cosine_decay_schedule(
-        0.0,
-        config.learning_rate,
-        config.warmup,
-        max(config.steps, config.warmup + 1),
-        config.learning_rate * 0.01,
-    )
-    opt = optax.adam(schedule)
-
-    def loss_fn(params, x, y, w):
-        pred = _phi(eqx.tree_at(lambda m: m.params, net, params), x)
-        return jnp.mean(w * jnp.abs(pred - y))
-
-    def run(params, opt_state, key, data, length):
-        def body(carry, k):
-            params, opt_state = carry
-            idx = jax.random.randint(k, (config.batch,), 0, data[0].shape[0])
-            loss, g = jax.value_and_grad(loss_fn)(params, *(a[idx] for a in data))
-            updates, opt_state = opt.update(g, opt_state, params)
-            return (optax.apply_updates(params, updates), opt_state), loss
-
-        (params, opt_state), losses = jax.lax.scan(body, (params, opt_state), jax.random.split(key, length))
-        return params, opt_state, losses
-
-    # The scan length is static: one compile for the chunks, one more for a shorter last one.
-    run = jax.jit(run, static_argnums=4)
     data = (jnp.asarray(x, jnp.float32), jnp.asarray(phi, jnp.float32), jnp.asarray(weight, jnp.float32))
     params = net.params
-    opt_state = opt.init(params)
+    opt_state = _optimizer(config).init(params)
     losses = []
     chunk = 100
     with tqdm(total=config.steps, desc="training neural SDF", unit="step", disable=not progress) as bar:
@@ -524,7 +546,7 @@ def train(mesh, config: NeuralSDFConfig | None = None, *, progress: bool = False
         while done < config.steps:
             length = min(chunk, config.steps - done)
             key, k = jax.random.split(key)
-            params, opt_state, ls = run(params, opt_state, k, data, length)
+            params, opt_state, ls = _train_chunk(net, params, opt_state, k, data, config=config, length=length)
             ls = np.asarray(ls)
             losses.extend(ls.tolist())
             done += length
@@ -534,7 +556,7 @@ def train(mesh, config: NeuralSDFConfig | None = None, *, progress: bool = False
         raise RuntimeError("neural SDF training diverged (non-finite loss): lower learning_rate")
     net = eqx.tree_at(lambda m: m.params, net, params)
     seconds = time.perf_counter() - t0
-    report = accuracy_report(net, mesh, config.band) if evaluate else None
+    report = accuracy_report(net, mesh, config.band, report_points) if evaluate else None
     info = dict(
         loss=losses,
         seconds=seconds,
@@ -600,6 +622,7 @@ def save(net: NeuralSDF, path, *, key: str, mesh_hash: str, config: NeuralSDFCon
                 checksum=np.asarray(_checksum(meta_json, arrays)),
                 **arrays,
             )
+        os.chmod(tmp, 0o644)  # mkstemp makes it private; weights are not secret
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -679,7 +702,12 @@ def load(path, *, key: str | None = None) -> tuple[NeuralSDF, dict]:
 
 
 def load_or_train(
-    mesh, config: NeuralSDFConfig | None = None, *, progress: bool = False, retrain: bool = False
+    mesh,
+    config: NeuralSDFConfig | None = None,
+    *,
+    progress: bool = False,
+    retrain: bool = False,
+    report_points: int = 20_000,
 ):
     """The cached neural SDF of ``mesh`` for ``config``, training (and caching) it if needed.
 
@@ -687,9 +715,19 @@ def load_or_train(
     config)``. A cached file that is corrupt or was written for something else is never used:
     it is reported with a warning and replaced by a freshly trained one.
 
+    Args:
+        mesh: ``trimesh.Trimesh``, watertight and consistently wound, in mm.
+        config: settings (default :class:`NeuralSDFConfig()`).
+        progress: progress bars while training.
+        retrain: train and overwrite even if a valid cached file exists.
+        report_points: points of the accuracy report made after training (stored in the file).
+
     Returns:
         ``(net, info)``: info has ``path``, ``cached`` (bool), ``key``, ``mesh_hash``, ``config``,
-        ``report`` (accuracy at training time) and ``seconds`` (training time, when trained).
+        ``report`` (accuracy at training time) and ``seconds`` (training time).
+
+    Raises:
+        ValueError: the mesh is not watertight or its winding is inconsistent.
     """
     config = config or NeuralSDFConfig()
     _check_mesh(mesh)
@@ -710,7 +748,7 @@ def load_or_train(
             )
         except NeuralSDFFileError as err:
             warnings.warn(f"{err}; retraining", stacklevel=2)
-    net, info = train(mesh, config, progress=progress)
+    net, info = train(mesh, config, progress=progress, report_points=report_points)
     save(
         net,
         path,
