@@ -52,6 +52,7 @@ __all__ = [
     "NeuralSDFConfig",
     "NeuralSDFFileError",
     "accuracy_report",
+    "band_errors",
     "cache_dir",
     "cache_key",
     "load",
@@ -60,6 +61,7 @@ __all__ = [
     "neural_sdf",
     "neural_sdf_and_normal",
     "save",
+    "summarise",
     "train",
 ]
 
@@ -421,22 +423,27 @@ def _band_points(mesh, exact: MeshSDF, band: float, n: int, rng):
     return np.concatenate(xs)[:n], np.concatenate(fs)[:n], np.concatenate(ns)[:n]
 
 
-def accuracy_report(net: NeuralSDF, mesh, band: float = 0.2, points: int = 20_000, seed: int = 1234) -> dict:
-    """Errors of the net against the exact mesh SDF, uniformly over the shell ``|φ| ≤ band``.
+def band_errors(net: NeuralSDF, mesh, band: float = 0.2, points: int = 20_000, seed: int = 1234) -> dict:
+    """Pointwise errors of the net (queried in float32) against the exact mesh SDF.
 
-    Returns a dict: ``points``, ``band_mm``; distance errors ``mae_mm``, ``rmse_mm``,
-    ``p95_mm``, ``max_mm``, ``mae_surface_mm`` (over ``|φ| ≤ band/10``); normal errors in degrees
-    ``normal_median_deg``, ``normal_p95_deg``.
+    Returns a dict of arrays over ``points`` points uniform in the shell ``|φ| ≤ band`` (mm):
+    ``x`` (n, 3), exact ``phi`` (n,), distance error ``error`` = φ_net − φ (n,), mm, and the
+    normal error ``angle`` (n,), degrees.
     """
     exact = _check_mesh(mesh)
     x, f, n = _band_points(mesh, exact, band, points, np.random.default_rng(seed))
     pf, pn = neural_sdf_and_normal(net, jnp.asarray(x, jnp.float32))
-    err = np.abs(np.asarray(pf, np.float64) - f)
     cos = np.clip(np.sum(np.asarray(pn, np.float64) * n, axis=1), -1.0, 1.0)
-    ang = np.degrees(np.arccos(cos))
-    surf = np.abs(f) <= band / 10
+    return dict(x=x, phi=f, error=np.asarray(pf, np.float64) - f, angle=np.degrees(np.arccos(cos)))
+
+
+def summarise(errors: dict, band: float) -> dict:
+    """The accuracy report of :func:`band_errors`' output; see :func:`accuracy_report`."""
+    err = np.abs(errors["error"])
+    ang = errors["angle"]
+    surf = np.abs(errors["phi"]) <= band / 10
     return dict(
-        points=len(x),
+        points=len(err),
         band_mm=float(band),
         mae_mm=float(err.mean()),
         rmse_mm=float(np.sqrt(np.mean(err**2))),
@@ -446,6 +453,16 @@ def accuracy_report(net: NeuralSDF, mesh, band: float = 0.2, points: int = 20_00
         normal_median_deg=float(np.median(ang)),
         normal_p95_deg=float(np.percentile(ang, 95)),
     )
+
+
+def accuracy_report(net: NeuralSDF, mesh, band: float = 0.2, points: int = 20_000, seed: int = 1234) -> dict:
+    """Errors of the net against the exact mesh SDF, uniformly over the shell ``|φ| ≤ band``.
+
+    Returns a dict: ``points``, ``band_mm``; distance errors ``mae_mm``, ``rmse_mm``,
+    ``p95_mm``, ``max_mm``, ``mae_surface_mm`` (over ``|φ| ≤ band/10``); normal errors in degrees
+    ``normal_median_deg``, ``normal_p95_deg``.
+    """
+    return summarise(band_errors(net, mesh, band, points, seed), band)
 
 
 def _optimizer(config: NeuralSDFConfig):
