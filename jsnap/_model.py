@@ -21,6 +21,7 @@ from jsnap._integrate import Material, SparseBlocks
 from jsnap._neural_sdf import NeuralSDF, load_or_train
 from jsnap._scene import Scene, SceneError, connector_geometry
 from jsnap._sdf import MeshSDF, rounded_box_mesh
+from jsnap._socket import FullSocket
 
 __all__ = ["Model", "Params", "build"]
 
@@ -80,20 +81,23 @@ class HostData:
     plug_mesh: object  # trimesh.Trimesh of the plug, in the plug frame
     free: np.ndarray  # (n,) free dofs of the full 3N vector
     sample_faces: np.ndarray  # (P,) boundary face of each contact sample
+    n_groups: int  # lines of candidate points (see Model.sample_group)
 
 
 class Model(eqx.Module):
     """A built scene: FEM blocks, base reaction rows, contact samples, plug and motion.
 
     Array fields (traced):
-        blocks: free x free parameter-free blocks (n = free dofs).
-        reaction: fixed x free blocks, for the base wrench.
-        base_offsets: (nb, 3) base node positions minus the base centroid, mm.
+        socket: the socket's linear model as the contact step sees it (``_socket``): the
+            full FEM (:class:`FullSocket`) or a reduced model.
         sample_rest: (P, 3) rest positions of contact candidate points on the socket, mm.
-        sample_nodes: (P, k) free-node index of each interpolating node (k = 3 P1, 6 P2).
-        sample_weights: (P, k) interpolation weights (0 where the node is clamped).
-        sample_tri: (P, 3, 3) rest positions of the corners of each point's face, mm.
-        sample_corner: (P,) bool, point on a socket edge (use the plug's normal there).
+        sample_stencil: (P, 8, 3) rest positions of each point's normal stencils, mm: the
+            deformed normals of its side and (at a corner) of the other side are
+            ``cross(s3 - s2, s1 - s0)`` and ``cross(s7 - s6, s5 - s4)`` (``_section_samples``).
+        sample_corner: (P,) bool, point on a convex socket edge (normal: the plug's, within the
+            cone of the two sides' normals).
+        sample_group: (P,) int, one group per section side and width position (a line of
+            points along the side); sample_order: (P,) int, the point's place along it.
         plug_half: (3,) plug half extents, mm.   plug_radius: () fillet, mm.
         plug_start: (3,) plug centre at t = 0, mm.
         mesh_sdf: exact triangle-mesh SDF of the plug (or None for the analytic SDF).
@@ -102,14 +106,12 @@ class Model(eqx.Module):
     Static fields: dt (s), sizes, solver choices.
     """
 
-    blocks: SparseBlocks
-    reaction: SparseBlocks
-    base_offsets: jax.Array
+    socket: FullSocket
     sample_rest: jax.Array
-    sample_nodes: jax.Array
-    sample_weights: jax.Array
-    sample_tri: jax.Array
+    sample_stencil: jax.Array
     sample_corner: jax.Array
+    sample_group: jax.Array
+    sample_order: jax.Array
     plug_half: jax.Array
     plug_radius: jax.Array
     plug_start: jax.Array
@@ -135,8 +137,13 @@ class Model(eqx.Module):
 
     @property
     def n_dof(self) -> int:
-        """Free degrees of freedom of the socket."""
-        return self.blocks.n_rows
+        """Degrees of freedom of the socket's state (free dofs, or reduced coordinates)."""
+        return self.socket.n_dof
+
+    @property
+    def n_groups(self) -> int:
+        """Lines of candidate points (section side x width position)."""
+        return int(self.host.n_groups)
 
     @property
     def n_samples(self) -> int:
@@ -183,46 +190,89 @@ def _edge_node_lookup(asm: Assembly):
     return {(int(a), int(b)): n_vert + i for i, (a, b) in enumerate(edges)}
 
 
+# Half-size of the stencil whose deformed shape gives a contact point's normal, mm: along the
+# section side (capped by the side's length) and across the width. A point force dimples the
+# elastic surface over about an element; the normal of the face under the point would tilt with
+# that dimple and give frictionless contacts a spurious tangential force, so the normal is taken
+# from the deformed positions of points a stencil apart, which follow the face's rotation.
+_STENCIL_SIDE = 0.25
+_STENCIL_WIDTH = 0.5
+
+
 def _section_samples(geom: Cantilever, lo, hi, spacing: float, width_spacing: float):
     """Candidate points of the extruded connector: its section outline sampled every
     ``spacing`` (mm, fine: across a contact line) times ``width_spacing`` across the width (mm,
     coarse: along it), kept inside the box [lo, hi].
 
-    Returns points (P, 3), rest outward normals (P, 3) and a (P,) flag for points on a corner
-    of the section (an edge of the socket, where the socket has no normal of its own).
+    Returns points (P, 3); the rest outward normals (P, 2, 3) of the side each point lies on and
+    of the other side at a corner (the same side elsewhere); a (P,) flag for points on a convex
+    corner of the section (an edge of the socket, where its normal is any in the cone between the
+    two sides'); the normal stencils (P, 8, 3) of those two sides: for each, two points along
+    the side and two across the width, so that ``cross(s3 - s2, s1 - s0)`` is its outward normal;
+    and each point's group (P,) (one group per section side and width position, numbered from 0)
+    and its order (P,) along its side.
     """
     poly = geom.section()
-    pts, nrm, corner = [], [], []
+    half_w = geom.width / 2
+    sides = []  # (start, direction, length, outward normal) of the non-degenerate sides
     for i in range(len(poly)):
         a, b = poly[i], poly[(i + 1) % len(poly)]
-        d = b - a
-        length = float(np.hypot(*d))
-        if length == 0:
-            continue
+        length = float(np.hypot(*(b - a)))
+        if length > 0:
+            d = (b - a) / length
+            sides.append((a, d, length, np.array([d[1], -d[0]])))  # outward: counter-clockwise
+    pts, nrm, corner, stn, side_of, pos = [], [], [], [], [], []
+    for i, (a, d, length, out) in enumerate(sides):
+        _, dp, lp, outp = sides[i - 1]
+        convex = dp[0] * d[1] - dp[1] * d[0] > 0
         n = max(1, math.ceil(length / spacing))
-        out = np.array([d[1], -d[0]]) / length  # outward for a counter-clockwise polygon
         for j in range(n):
-            pts.append(a + d * j / n)
-            nrm.append(out)
-            corner.append(j == 0)
-    pts, nrm = np.array(pts), np.array(nrm)
-    ys = np.linspace(-geom.width / 2, geom.width / 2, math.ceil(geom.width / width_spacing) + 1)
-    X = np.stack(
-        [np.repeat(pts[:, 0], ys.size), np.tile(ys, len(pts)), np.repeat(pts[:, 1], ys.size)],
+            s_here = length * j / n
+            pts.append(a + d * s_here)
+            own = (a + d * max(0.0, s_here - _STENCIL_SIDE), a + d * min(length, s_here + _STENCIL_SIDE))
+            if j == 0 and convex:  # the corner: the previous side's stencil ends here
+                other, n_other = (a - dp * min(lp, _STENCIL_SIDE), a), outp
+            else:
+                other, n_other = own, out
+            corner.append(j == 0 and convex)
+            side_of.append(i)
+            pos.append(j)
+            nrm.append((out, n_other))
+            stn.append((*own, *other))
+    pts, nrm, stn = np.array(pts), np.array(nrm), np.array(stn)  # (S, 2), (S, 2, 2), (S, 4, 2)
+    ys = np.linspace(-half_w, half_w, math.ceil(geom.width / width_spacing) + 1)
+    ny = ys.size
+
+    def lift(xz, y):  # section coordinates (S, 2) x width positions (ny,) -> (S*ny, 3)
+        return np.stack(
+            [np.repeat(xz[:, 0], ny), np.broadcast_to(y, (len(xz), ny)).ravel(), np.repeat(xz[:, 1], ny)], 1
+        )
+
+    X = lift(pts, ys)
+    N = np.stack([lift(nrm[:, k], np.zeros(ny)) for k in range(2)], axis=1)
+    C = np.repeat(np.array(corner), ny)
+    y_lo, y_hi = np.clip(ys - _STENCIL_WIDTH, -half_w, half_w), np.clip(ys + _STENCIL_WIDTH, -half_w, half_w)
+    across = [lift(pts, y_lo), lift(pts, y_hi)]
+    stencil = np.stack(
+        [lift(stn[:, 0], ys), lift(stn[:, 1], ys), *across, lift(stn[:, 2], ys), lift(stn[:, 3], ys), *across],
         axis=1,
     )
-    N = np.stack([np.repeat(nrm[:, 0], ys.size), np.zeros(X.shape[0]), np.repeat(nrm[:, 1], ys.size)], axis=1)
-    C = np.repeat(np.array(corner), ys.size)
+    group = np.repeat(np.array(side_of), ny) * ny + np.tile(np.arange(ny), len(pts))
+    order = np.repeat(np.array(pos), ny)
     keep = np.all((X >= lo) & (X <= hi), axis=1)
-    return X[keep], N[keep], C[keep]
+    _, group = np.unique(group[keep], return_inverse=True)  # renumber 0..G-1
+    return X[keep], N[keep], C[keep], stencil[keep], group, order[keep]
 
 
-def _locate_on_faces(asm: Assembly, faces: np.ndarray, X: np.ndarray):
+def _locate_on_faces(asm: Assembly, faces: np.ndarray, X: np.ndarray, normals: np.ndarray):
     """Face of each point (on the boundary) and its interpolating nodes and weights.
 
-    The weights are the element's own shape functions on the face (P1: barycentric; P2:
-    vertex l(2l-1), edge 4 l_i l_j), so the contact resolution is independent of the mesh.
-    Returns nodes (P, k), weights (P, k), face vertex positions (P, 3, 3) and the face index.
+    A point on an edge of the socket lies on several faces; it is given the one whose normal is
+    closest to ``normals`` (P, 3), the outward normal of the section side it was sampled on, so
+    that every point of one side shares that side's normal. The weights are the element's own
+    shape functions on the face (P1: barycentric; P2: vertex l(2l-1), edge 4 l_i l_j), so the
+    contact resolution is independent of the mesh.
+    Returns nodes (P, k), weights (P, k) and the face index (P,).
     """
     pts = asm.mesh.points
     tri = pts[faces]  # (F, 3, 3)
@@ -236,15 +286,16 @@ def _locate_on_faces(asm: Assembly, faces: np.ndarray, X: np.ndarray):
     l0 = 1 - l1 - l2
     outside = np.maximum(np.maximum(-l0, -l1), -l2).clip(min=0)
     score = plane + outside * area2[None, :] ** 0.5
-    f = np.argmin(score, axis=1)
-    if np.any(score[np.arange(len(X)), f] > 1e-7):
+    if np.any(score.min(axis=1) > 1e-7):
         raise RuntimeError("contact sample not on the socket surface (geometry/mesh mismatch)")
+    align = np.einsum("pd,fd->pf", normals, nrm / area2[:, None])
+    f = np.argmax(np.where(score <= 1e-7, align, -np.inf), axis=1)
     r = np.arange(len(X))
     L = np.stack([l0[r, f], l1[r, f], l2[r, f]], axis=1).clip(0, 1)
     L /= L.sum(axis=1, keepdims=True)
     a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
     if asm.element == "P1":
-        return np.stack([a, b, c], axis=1), L, tri[f], f
+        return np.stack([a, b, c], axis=1), L, f
     edge_node = _edge_node_lookup(asm)
     e = [
         [edge_node[tuple(sorted((int(i), int(j))))] for i, j in zip(u, v, strict=True)]
@@ -263,7 +314,7 @@ def _locate_on_faces(asm: Assembly, faces: np.ndarray, X: np.ndarray):
         ],
         axis=1,
     )
-    return nodes, w, tri[f], f
+    return nodes, w, f
 
 
 def _reachable_faces(mesh: TetMesh, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -317,14 +368,31 @@ def build(scene: Scene, *, progress: bool = False) -> Model:
             "the plug's path never comes near the socket (motion.stroke / plug placement): "
             "no contact is possible"
         )
-    X, normals, corner = _section_samples(geom, lo, hi, ct["spacing"], ct["width_spacing"])
-    nodes, weights, tri, owner = _locate_on_faces(asm, faces, X)
+    X, normals, corner, stencil, group, order = _section_samples(
+        geom, lo, hi, ct["spacing"], ct["width_spacing"]
+    )
+    nodes, weights, owner = _locate_on_faces(asm, faces, X, normals[:, 0])
+    pad = max(_STENCIL_SIDE, _STENCIL_WIDTH)
+    st_nodes, st_weights, _ = _locate_on_faces(
+        asm,
+        _reachable_faces(mesh, lo - pad, hi + pad),
+        stencil.reshape(-1, 3),
+        np.repeat(normals, 4, axis=1).reshape(-1, 3),
+    )
     # Interpolating nodes that are clamped do not move: point them at free node 0, weight 0.
     node_to_free = -np.ones(asm.nodes.shape[0], dtype=np.int64)
     node_to_free[free[0::3] // 3] = np.arange(free.size // 3)
-    fnodes = node_to_free[nodes]
-    weights = np.where(fnodes < 0, 0.0, weights)
-    fnodes = np.where(fnodes < 0, 0, fnodes)
+
+    def to_free(nodes, weights):
+        fnodes = node_to_free[nodes]
+        return jnp.asarray(np.where(fnodes < 0, 0, fnodes), jnp.int32), jnp.asarray(
+            np.where(fnodes < 0, 0.0, weights)
+        )
+
+    fnodes, weights = to_free(nodes, weights)
+    st_nodes, st_weights = to_free(
+        st_nodes.reshape(*stencil.shape[:2], -1), st_weights.reshape(*stencil.shape[:2], -1)
+    )
 
     plug_mesh = rounded_box_mesh(half, radius)
     mesh_sdf = MeshSDF.from_trimesh(plug_mesh) if s["sdf"] == "mesh" else None
@@ -333,18 +401,23 @@ def build(scene: Scene, *, progress: bool = False) -> Model:
         neural_sdf, info = load_or_train(plug_mesh, progress=progress)
         say(f"jsnap: neural SDF {'loaded from' if info['cached'] else 'trained, cached in'} {info['path']}")
     say(f"jsnap: {X.shape[0]} contact candidate points on {faces.shape[0]} faces")
-    del normals  # the kernel uses the deformed face normal
 
-    host = HostData(scene, asm, geom, plug_mesh, free, owner)
+    host = HostData(scene, asm, geom, plug_mesh, free, owner, int(group.max()) + 1)
     return Model(
-        blocks=blocks,
-        reaction=reaction,
-        base_offsets=jnp.asarray(base_offsets),
+        socket=FullSocket(
+            blocks=blocks,
+            reaction=reaction,
+            base_offsets=jnp.asarray(base_offsets),
+            sample_nodes=fnodes,
+            sample_weights=weights,
+            stencil_nodes=st_nodes,
+            stencil_weights=st_weights,
+        ),
         sample_rest=jnp.asarray(X),
-        sample_nodes=jnp.asarray(fnodes, jnp.int32),
-        sample_weights=jnp.asarray(weights),
-        sample_tri=jnp.asarray(tri),
+        sample_stencil=jnp.asarray(stencil),
         sample_corner=jnp.asarray(corner),
+        sample_group=jnp.asarray(group, jnp.int32),
+        sample_order=jnp.asarray(order, jnp.int32),
         plug_half=jnp.asarray(half),
         plug_radius=jnp.asarray(radius, jnp.float64),
         plug_start=jnp.asarray(start),

@@ -89,7 +89,7 @@ _SCHEMA: dict[str, dict[str, _Key]] = {
     "contact": {
         "friction": _Key(float, 0.3, _nonneg, doc="Coulomb coefficient mu"),
         "capacity": _Key(int, 64, _positive, doc="contact buffer slots"),
-        "spacing": _Key(float, 0.05, _positive, doc="candidate spacing along the section, mm"),
+        "spacing": _Key(float, 0.02, _positive, doc="candidate spacing along the section, mm"),
         "width_spacing": _Key(float, 0.5, _positive, doc="candidate spacing across width, mm"),
         "margin": _Key(float, 0.02, _nonneg, doc="distance below which a point is a candidate, mm"),
         "solver": _Key(str, "apgd", choices=("apgd", "pgs"), doc="cone-complementarity solver"),

@@ -24,7 +24,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from jsnap._contact import solve_apgd, solve_pgs
-from jsnap._integrate import PMIOperator, energy, pmi_operator, pmi_rhs
 from jsnap._model import Model, Params
 from jsnap._neural_sdf import neural_sdf_and_normal
 from jsnap._sdf import mesh_sdf_and_normal, rounded_box_sdf_and_normal
@@ -34,10 +33,11 @@ __all__ = ["Prepared", "Result", "State", "init_state", "prepare", "rollout", "s
 
 
 class Prepared(eqx.Module):
-    """Parameters plus what the step needs from them (the factorised PMI operator)."""
+    """Parameters plus what the step needs from them: the socket's PMI operator (for the full
+    model the factorised S^-1, see ``_socket``)."""
 
     params: Params
-    op: PMIOperator
+    op: eqx.Module
 
 
 class State(eqx.Module):
@@ -118,12 +118,12 @@ class Result(eqx.Module):
 
 
 def prepare(model: Model, params: Params | None = None) -> Prepared:
-    """Factorise the PMI operator for ``params`` (default: the scene's), float64.
+    """The socket's PMI operator for ``params`` (default: the scene's), float64.
 
     Differentiable with respect to every field of ``params``; cost ~ n^3 for the full model.
     """
     params = model.params if params is None else params
-    return Prepared(params, pmi_operator(model.blocks, params.material, model.dt))
+    return Prepared(params, model.socket.prepare(params.material, model.dt))
 
 
 def init_state(model: Model, dtype=None) -> State:
@@ -152,6 +152,128 @@ def _frames(n):
     return jnp.stack([n, t1, t2], axis=-1)
 
 
+def _contact_normal(stencil, n_plug, corner):
+    """(C, 3) contact normals, pointing into the socket.
+
+    On a socket face touched by a plug feature (a fillet), the normal is the socket's own
+    deformed face normal: the plug's SDF normal at a sample point beside the true contact line
+    would be off by the fillet's arc (spacing / (2 r) rad). At a convex socket edge (a corner of
+    the section) the normal is the plug's, projected into the cone between the two adjacent
+    faces' normals: outside that cone the true contact lies on the adjacent face, not the edge.
+
+    Args:
+        stencil: (C, 8, 3) deformed normal stencils (see ``_model._section_samples``).
+        n_plug: (C, 3) plug SDF normals at the points (outward of the plug).
+        corner: (C,) bool, point on a convex edge.
+    """
+
+    def side_normal(s):
+        n = jnp.cross(s[:, 3] - s[:, 2], s[:, 1] - s[:, 0])
+        return -n / safe_norm(n, keepdims=True)  # into the socket
+
+    n1, n2 = side_normal(stencil[:, :4]), side_normal(stencil[:, 4:])
+    axis = jnp.cross(n1, n2)
+    inside = (jnp.sum(jnp.cross(n1, n_plug) * axis, -1) >= 0) & (jnp.sum(jnp.cross(n_plug, n2) * axis, -1) >= 0)
+    nearest = jnp.where((jnp.sum(n1 * n_plug, -1) >= jnp.sum(n2 * n_plug, -1))[:, None], n1, n2)
+    at_edge = jnp.where(inside[:, None], n_plug, nearest)
+    # A face point whose face normal opposes the plug's (deep inside it) is pushed out the
+    # plug's way.
+    on_face = jnp.where((jnp.sum(n1 * n_plug, -1) > 0)[:, None], n1, n_plug)
+    return jnp.where(corner[:, None], at_edge, on_face)
+
+
+class ContactProblem(eqx.Module):
+    """One step's cone problem (see ``_contact``) and what maps it back to the socket.
+
+    W: (3C, 3C) Delassus matrix in contact frames, mm/(N s); q: (3C,) free relative velocity
+    plus gap stabilisation, mm/s; mu: (C,); active: (C,) bool; idx: (C,) candidate index of
+    each slot; A: (C, 3, n) ``J S^-1``; R: (C, 3, 3) frames [n, t1, t2]; points: (C, 3) slot
+    positions, mm; gamma0: (C, 3) warm start, N; overflow: candidates that did not fit.
+    """
+
+    W: jax.Array
+    q: jax.Array
+    mu: jax.Array
+    active: jax.Array
+    idx: jax.Array
+    A: jax.Array
+    R: jax.Array
+    points: jax.Array
+    gamma0: jax.Array
+    overflow: jax.Array
+
+
+def _manifold(model: Model, phi):
+    """(P,) bool: the candidates (``phi < margin``) kept for the contact buffer.
+
+    Along each line of points (one section side at one width position) only the deepest point
+    and the first and last points within the margin are kept: the deepest carries a fillet's
+    line contact, the two ends bound a flat-on-flat patch (its reaction and moment). The number
+    kept is then set by the geometry, not by the sampling density, so the spacing can be fine
+    enough that the contact moves smoothly from point to point without filling the buffer.
+    """
+    cand = phi < model.margin
+    G = model.n_groups
+    g = model.sample_group
+    pos = model.sample_order
+    big = jnp.iinfo(jnp.int32).max
+    deepest = jax.ops.segment_min(jnp.where(cand, phi, jnp.inf), g, num_segments=G)
+    # One deepest point per line, even when several tie (coplanar faces).
+    at_deepest = jax.ops.segment_min(jnp.where(cand & (phi <= deepest[g]), pos, big), g, num_segments=G)
+    first = jax.ops.segment_min(jnp.where(cand, pos, big), g, num_segments=G)
+    last = jax.ops.segment_max(jnp.where(cand, pos, -1), g, num_segments=G)
+    return cand & ((pos == at_deepest[g]) | (pos == first[g]) | (pos == last[g]))
+
+
+def _contact_problem(model: Model, prepared: Prepared, state: State, vbar_free, vp_free, s_p, y, score, gamma):
+    """The cone problem of one step (before solving it).
+
+    Args:
+        y: (P, 3) candidate points at the start of the step, mm.
+        score: (P,) selection score: the points with ``score < margin`` are candidates, the
+            lowest first (normally the signed distance to the plug).
+        gamma: (P, 3) warm start per candidate point, N.
+    """
+    op = prepared.op
+    T = op.dt
+    dtype = state.x.dtype
+    sock = model.socket
+    C = model.capacity
+    keep = _manifold(model, score)
+    n_cand = jnp.sum(keep)
+    _, idx = jax.lax.top_k(jnp.where(keep, -score, -jnp.inf), C)
+    phi, n_plug = _plug_sdf(model, y[idx] - state.plug)
+    active = keep[idx]
+    stencil = model.sample_stencil[idx] + sock.stencil_disp(state.x, idx)
+    normal = _contact_normal(stencil, n_plug, model.sample_corner[idx])
+
+    # Delassus operator in contact frames.
+    A, W = sock.contact_operator(op, idx)  # J S^-1 (C, 3, n); J S^-1 J' (C, 3, C, 3), world
+    R = _frames(normal)
+    W = W + s_p * jnp.eye(3, dtype=dtype)[None, :, None, :]
+    W_loc = jnp.einsum("cdi,cdef,efj->ciej", R, W, R).reshape(3 * C, 3 * C)
+    W_loc = 0.5 * (W_loc + W_loc.T)
+    u_free = sock.point_velocity(vbar_free, idx) - vp_free
+    q = jnp.einsum("cdi,cd->ci", R, u_free).at[:, 0].add(phi / T).reshape(-1)
+    mu = jnp.broadcast_to(prepared.params.friction, (C,)).astype(dtype)
+    return ContactProblem(W_loc, q, mu, active, idx, A, R, y[idx], gamma[idx], jnp.maximum(n_cand - C, 0))
+
+
+def _solve(model: Model, prob: ContactProblem):
+    solve = solve_apgd if model.contact_solver == "apgd" else solve_pgs
+    sol = solve(
+        prob.W,
+        prob.q,
+        prob.mu,
+        prob.active,
+        max_iters=model.iterations,
+        tol=model.tolerance,
+        gamma0=prob.gamma0,
+    )
+    Gamma = jnp.einsum("cij,cj->ci", prob.R, sol.gamma) * prob.active[:, None]  # on socket, world
+    return sol, Gamma
+
+
 def step(model: Model, prepared: Prepared, state: State, control: jax.Array):
     """Advance one time step.
 
@@ -167,13 +289,11 @@ def step(model: Model, prepared: Prepared, state: State, control: jax.Array):
     op = prepared.op
     T = op.dt
     dtype = state.x.dtype
-    blocks = model.blocks
+    sock = model.socket
     x, v = state.x, state.v
-    C = model.capacity
 
     # 1. Free socket motion.
-    rhs = pmi_rhs(blocks, op, x, v, jnp.zeros_like(x))
-    vbar_free = op.S_inv @ rhs
+    vbar_free = sock.free_velocity(op, x, v)
 
     # Plug: kinematic (s_p = 0) or driven through the virtual coupling (PMI on the plug too).
     v_des = (control - state.target) / T
@@ -186,52 +306,29 @@ def step(model: Model, prepared: Prepared, state: State, control: jax.Array):
         mid_target = 0.5 * (control + state.target)
         vp_free = s_p * (2 * m / T * state.plug_vel + k * (mid_target - state.plug) + b * v_des)
 
-    # 2. Collision: candidate points in the plug frame.
-    xn = x.reshape(-1, 3)
-    w = model.sample_weights
-    disp = jnp.einsum("pk,pkd->pd", w, xn[model.sample_nodes])
-    y = model.sample_rest + disp
-    phi_all, _ = _plug_sdf(model, y - state.plug)
-    n_cand = jnp.sum(phi_all < model.margin)
-    _, idx = jax.lax.top_k(-phi_all, C)
-    phi, n_plug = _plug_sdf(model, y[idx] - state.plug)
-    active = phi < model.margin
-    # On a flat socket face touched by a plug feature (a fillet), the contact normal is the
-    # socket's own (deformed) face normal; the plug's SDF normal at a point beside the true
-    # contact line would be off by the fillet's arc. At socket edges the plug's normal is used.
-    tri = (
-        model.sample_tri[idx]
-        + xn[model.sample_nodes[idx, :3]] * (model.sample_weights[idx, :3] != 0)[..., None]
-    )
-    n_face = jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    n_face = -n_face / safe_norm(n_face, keepdims=True)
-    agree = jnp.sum(n_face * n_plug, axis=-1) > 0.7
-    normal = jnp.where((agree & ~model.sample_corner[idx])[:, None], n_face, n_plug)
+    # 2.-3. Collision and the cone problem: candidates within the margin now.
+    y = model.sample_rest + sock.sample_disp(x)
+    phi_now, _ = _plug_sdf(model, y - state.plug)
+    prob = _contact_problem(model, prepared, state, vbar_free, vp_free, s_p, y, phi_now, state.gamma)
+    sol, Gamma = _solve(model, prob)
 
-    # 3. Delassus operator in contact frames.
-    nodes = model.sample_nodes[idx]  # (C, k)
-    wk = w[idx]  # (C, k)
-    dofs = 3 * nodes[..., None] + jnp.arange(3)  # (C, k, 3)
-    A = jnp.einsum("ck,ckdn->cdn", wk, op.S_inv[dofs])  # (C, 3, n) = J S^-1
-    W = jnp.einsum("cdekf,ek->cdef", A[:, :, dofs], wk)  # (C, 3, C, 3) world
-    R = _frames(normal)
-    W = W + s_p * jnp.eye(3, dtype=dtype)[None, :, None, :]
-    W_loc = jnp.einsum("cdi,cdef,efj->ciej", R, W, R).reshape(3 * C, 3 * C)
-    W_loc = 0.5 * (W_loc + W_loc.T)
-    u_free = jnp.einsum("ck,ckd->cd", wk, vbar_free.reshape(-1, 3)[nodes]) - vp_free
-    q = jnp.einsum("cdi,cd->ci", R, u_free).at[:, 0].add(phi / T).reshape(-1)
-    mu = jnp.broadcast_to(prepared.params.friction, (C,)).astype(dtype)
-    solve = solve_apgd if model.contact_solver == "apgd" else solve_pgs
-    sol = solve(
-        W_loc,
-        q,
-        mu,
-        active,
-        max_iters=model.iterations,
-        tol=model.tolerance,
-        gamma0=state.gamma[idx],
-    )
-    Gamma = jnp.einsum("cij,cj->ci", R, sol.gamma) * active[:, None]  # on socket, world
+    # Predict-correct: where the solved motion would carry points that were not in the buffer
+    # into the plug (a stiff, light socket released by the plug springs back through a large gap
+    # within one step), add them and solve again, warm-started.
+    vbar_1 = vbar_free + jnp.einsum("cdn,cd->n", prob.A, Gamma)
+    plug_1 = state.plug + T * (vp_free - s_p * jnp.sum(Gamma, axis=0))
+    phi_end, _ = _plug_sdf(model, y + T * sock.sample_disp(vbar_1) - plug_1)
+    in_buffer = jnp.zeros(phi_now.shape, bool).at[prob.idx].set(prob.active)
+    fresh = (phi_end < -0.5 * model.margin) & ~in_buffer
+
+    def correct(_):
+        warm = state.gamma.at[prob.idx].set(sol.gamma * prob.active[:, None])
+        score = jnp.where(fresh, phi_end, phi_now)
+        prob2 = _contact_problem(model, prepared, state, vbar_free, vp_free, s_p, y, score, warm)
+        return (prob2, *_solve(model, prob2))
+
+    prob, sol, Gamma = jax.lax.cond(jnp.any(fresh), correct, lambda _: (prob, sol, Gamma), None)
+    idx, A, active = prob.idx, prob.A, prob.active
 
     # 4. Update.
     vbar = vbar_free + jnp.einsum("cdn,cd->n", A, Gamma)
@@ -247,43 +344,26 @@ def step(model: Model, prepared: Prepared, state: State, control: jax.Array):
         xbar_p = state.plug + 0.5 * T * vbar_p
         coupling = k * (0.5 * (control + state.target) - xbar_p) + b * (v_des - vbar_p)
 
-    # Base reaction at the interval's midpoint, consistent with the PMI equations.
-    r = model.reaction
-    rk, rm = _reaction_data(model, prepared, dtype)
-    xbar = x + 0.5 * T * vbar
-    react = (
-        r.matvec(rm, (v_new - v) / T)
-        + r.matvec(prepared.params.alpha * rm + prepared.params.beta * rk, vbar)
-        + r.matvec(rk, xbar)
-    ).reshape(-1, 3)
+    base_force, base_moment = sock.base_wrench(op, prepared.params.material, x, v, v_new, vbar)
     out = StepOutput(
         insertion_force=-total[2],
         lateral_force=-total[0],
-        base_force=react.sum(axis=0),
-        base_moment=jnp.cross(model.base_offsets.astype(dtype), react).sum(axis=0),
+        base_force=base_force,
+        base_moment=base_moment,
         coupling_force=coupling,
-        energy=energy(blocks, op, x_new, v_new),
+        energy=sock.energy(op, x_new, v_new),
         work=T * jnp.sum(Gamma * vbar_p),
         plug=plug_new,
         contact_force=Gamma,
-        contact_point=y[idx],
+        contact_point=prob.points,
         contact_active=active,
-        overflow=jnp.maximum(n_cand - C, 0),
+        overflow=prob.overflow,
         residual=sol.residual,
         iterations=sol.iterations,
     )
     gamma = jnp.zeros_like(state.gamma).at[idx].set(sol.gamma * active[:, None])
     new = State(x_new, v_new, plug_new, vbar_p * 2 - state.plug_vel, control, state.t + T, gamma)
     return new, out
-
-
-def _reaction_data(model: Model, prepared: Prepared, dtype):
-    from jsnap._fem import lame
-
-    p = prepared.params
-    lam, mu = lame(p.E, p.nu)
-    r = model.reaction
-    return (lam * r.kl + mu * r.km).astype(dtype), (p.rho * r.m1).astype(dtype)
 
 
 def _cast(tree, dtype):
