@@ -127,6 +127,7 @@ class Model(eqx.Module):
     sdf: str = eqx.field(static=True)
     capacity: int = eqx.field(static=True)
     margin: float = eqx.field(static=True)
+    compliance: float = eqx.field(static=True)
     contact_solver: str = eqx.field(static=True)
     iterations: int = eqx.field(static=True)
     tolerance: float = eqx.field(static=True)
@@ -434,6 +435,7 @@ def build(scene: Scene, *, progress: bool = False) -> Model:
         sdf=s["sdf"],
         capacity=ct["capacity"],
         margin=ct["margin"],
+        compliance=ct["compliance"],
         contact_solver=ct["solver"],
         iterations=ct["iterations"],
         tolerance=ct["tolerance"],

@@ -92,6 +92,7 @@ _SCHEMA: dict[str, dict[str, _Key]] = {
         "spacing": _Key(float, 0.02, _positive, doc="candidate spacing along the section, mm"),
         "width_spacing": _Key(float, 0.5, _positive, doc="candidate spacing across width, mm"),
         "margin": _Key(float, 0.02, _nonneg, doc="distance below which a point is a candidate, mm"),
+        "compliance": _Key(float, 0.0, _nonneg, doc="contact regularisation per point, mm/N"),
         "solver": _Key(str, "apgd", choices=("apgd", "pgs"), doc="cone-complementarity solver"),
         "iterations": _Key(int, 500, _positive, doc="maximum solver iterations per step"),
         "tolerance": _Key(float, 1e-6, _positive, doc="normalised KKT residual to stop at"),

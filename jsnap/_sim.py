@@ -252,7 +252,7 @@ def _contact_problem(model: Model, prepared: Prepared, state: State, vbar_free, 
     R = _frames(normal)
     W = W + s_p * jnp.eye(3, dtype=dtype)[None, :, None, :]
     W_loc = jnp.einsum("cdi,cdef,efj->ciej", R, W, R).reshape(3 * C, 3 * C)
-    W_loc = 0.5 * (W_loc + W_loc.T)
+    W_loc = 0.5 * (W_loc + W_loc.T) + (model.compliance / T) * jnp.eye(3 * C, dtype=dtype)
     u_free = sock.point_velocity(vbar_free, idx) - vp_free
     q = jnp.einsum("cdi,cd->ci", R, u_free).at[:, 0].add(phi / T).reshape(-1)
     mu = jnp.broadcast_to(prepared.params.friction, (C,)).astype(dtype)
