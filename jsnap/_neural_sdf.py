@@ -728,9 +728,10 @@ def load_or_train(
 ):
     """The cached neural SDF of ``mesh`` for ``config``, training (and caching) it if needed.
 
-    The cache file is ``cache_dir()/neural_sdf/<key>.npz`` with ``key = cache_key(mesh,
-    config)``. A cached file that is corrupt or was written for something else is never used:
-    it is reported with a warning and replaced by a freshly trained one.
+    The cache file is ``cache_dir()/neural_sdf/<k>.npz``, ``k`` the first 32 hex digits of
+    ``cache_key(mesh, config)`` (the full key is stored in the file and checked). A cached file
+    that is corrupt or was written for something else is never used: it is reported with a
+    warning and replaced by a freshly trained one.
 
     Args:
         mesh: ``trimesh.Trimesh``, watertight and consistently wound, in mm.
