@@ -19,6 +19,7 @@ from jsnap._fem import Assembly, assemble
 from jsnap._geometry import Cantilever, TetMesh, mesh_cantilever
 from jsnap._integrate import Material, SparseBlocks
 from jsnap._neural_sdf import NeuralSDF, load_or_train
+from jsnap._reduce import ReducedSocket, build_socket
 from jsnap._scene import Scene, SceneError, connector_geometry
 from jsnap._sdf import MeshSDF, rounded_box_mesh
 from jsnap._socket import FullSocket
@@ -82,6 +83,7 @@ class HostData:
     free: np.ndarray  # (n,) free dofs of the full 3N vector
     sample_faces: np.ndarray  # (P,) boundary face of each contact sample
     n_groups: int  # lines of candidate points (see Model.sample_group)
+    reduction: dict | None = None  # segmented/reduced socket: orders, build time, cache (_reduce)
 
 
 class Model(eqx.Module):
@@ -106,7 +108,7 @@ class Model(eqx.Module):
     Static fields: dt (s), sizes, solver choices.
     """
 
-    socket: FullSocket
+    socket: FullSocket | ReducedSocket
     sample_rest: jax.Array
     sample_stencil: jax.Array
     sample_corner: jax.Array
@@ -364,19 +366,22 @@ def build(scene: Scene, *, progress: bool = False) -> Model:
     hi = start + half + reach
     lo[2] -= stroke
     faces = _reachable_faces(mesh, lo, hi)
-    if faces.size == 0:
+    swept_lo, swept_hi = start - half - [0, 0, stroke], start + half
+    apart = np.any(swept_hi < mesh.points.min(axis=0)) or np.any(swept_lo > mesh.points.max(axis=0))
+    if faces.size == 0 or apart:
         raise SceneError(
-            "the plug's path never comes near the socket (motion.stroke / plug placement): "
-            "no contact is possible"
+            f"the plug's path never touches the socket (motion.stroke = {stroke:g} mm from "
+            f"plug.clearance = {scene['plug']['clearance']:g} mm above the hook): no contact is possible"
         )
     X, normals, corner, stencil, group, order = _section_samples(
         geom, lo, hi, ct["spacing"], ct["width_spacing"]
     )
     nodes, weights, owner = _locate_on_faces(asm, faces, X, normals[:, 0])
     pad = max(_STENCIL_SIDE, _STENCIL_WIDTH)
-    st_nodes, st_weights, _ = _locate_on_faces(
+    st_faces = _reachable_faces(mesh, lo - pad, hi + pad)
+    st_nodes, st_weights, st_owner = _locate_on_faces(
         asm,
-        _reachable_faces(mesh, lo - pad, hi + pad),
+        st_faces,
         stencil.reshape(-1, 3),
         np.repeat(normals, 4, axis=1).reshape(-1, 3),
     )
@@ -403,17 +408,30 @@ def build(scene: Scene, *, progress: bool = False) -> Model:
         say(f"jsnap: neural SDF {'loaded from' if info['cached'] else 'trained, cached in'} {info['path']}")
     say(f"jsnap: {X.shape[0]} contact candidate points on {faces.shape[0]} faces")
 
-    host = HostData(scene, asm, geom, plug_mesh, free, owner, int(group.max()) + 1)
+    socket = FullSocket(
+        blocks=blocks,
+        reaction=reaction,
+        base_offsets=jnp.asarray(base_offsets),
+        sample_nodes=fnodes,
+        sample_weights=weights,
+        stencil_nodes=st_nodes,
+        stencil_weights=st_weights,
+    )
+    reduction = None
+    if s["method"] != "full":  # segments: the elements of the contact faces (+ margin) and the rest
+        seeds = np.concatenate([faces[owner], st_faces[st_owner]])
+        socket, reduction = build_socket(
+            asm,
+            seeds,
+            (fnodes, weights),
+            (st_nodes, st_weights),
+            scene,
+            progress=progress,
+        )
+        say(f"jsnap: {s['method']} socket, {' + '.join(map(str, socket.orders))} coordinates")
+    host = HostData(scene, asm, geom, plug_mesh, free, owner, int(group.max()) + 1, reduction)
     return Model(
-        socket=FullSocket(
-            blocks=blocks,
-            reaction=reaction,
-            base_offsets=jnp.asarray(base_offsets),
-            sample_nodes=fnodes,
-            sample_weights=weights,
-            stencil_nodes=st_nodes,
-            stencil_weights=st_weights,
-        ),
+        socket=socket,
         sample_rest=jnp.asarray(X),
         sample_stencil=jnp.asarray(stencil),
         sample_corner=jnp.asarray(corner),

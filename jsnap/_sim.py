@@ -31,6 +31,9 @@ from jsnap._util import safe_norm
 
 __all__ = ["Prepared", "Result", "State", "init_state", "prepare", "rollout", "step"]
 
+# Fractions of a step's straight-line motion at which the predict-correct collision check looks.
+_PATH_CHECKS = (0.25, 0.5, 0.75, 1.0)
+
 
 class Prepared(eqx.Module):
     """Parameters plus what the step needs from them: the socket's PMI operator (for the full
@@ -69,6 +72,7 @@ class StepOutput(eqx.Module):
     contact_force: jax.Array
     contact_point: jax.Array
     contact_active: jax.Array
+    contact_index: jax.Array
     overflow: jax.Array
     residual: jax.Array
     iterations: jax.Array
@@ -92,6 +96,7 @@ class Result(eqx.Module):
         plug: (n, 3) plug centre, mm.
         contact_force: (n, C, 3) force of the plug on the socket at each slot, N.
         contact_point: (n, C, 3) slot positions, mm.   contact_active: (n, C) bool.
+        contact_index: (n, C) candidate point of each slot (index into ``model.sample_rest``).
         overflow: (n,) candidates that did not fit in the buffer (0 = none dropped).
         residual, iterations: (n,) contact solver's normalised KKT residual and iterations.
         travel: (n,) plug travel along -z since t = 0, mm.
@@ -111,6 +116,7 @@ class Result(eqx.Module):
     contact_force: jax.Array
     contact_point: jax.Array
     contact_active: jax.Array
+    contact_index: jax.Array
     overflow: jax.Array
     residual: jax.Array
     iterations: jax.Array
@@ -254,7 +260,7 @@ def _contact_problem(model: Model, prepared: Prepared, state: State, vbar_free, 
     W_loc = jnp.einsum("cdi,cdef,efj->ciej", R, W, R).reshape(3 * C, 3 * C)
     W_loc = 0.5 * (W_loc + W_loc.T) + (model.compliance / T) * jnp.eye(3 * C, dtype=dtype)
     u_free = sock.point_velocity(vbar_free, idx) - vp_free
-    q = jnp.einsum("cdi,cd->ci", R, u_free).at[:, 0].add(phi / T).reshape(-1)
+    q = jnp.einsum("cdi,cd->ci", R, u_free).at[:, 0].add(jnp.maximum(phi, 0) / T).reshape(-1)
     mu = jnp.broadcast_to(prepared.params.friction, (C,)).astype(dtype)
     return ContactProblem(W_loc, q, mu, active, idx, A, R, y[idx], gamma[idx], jnp.maximum(n_cand - C, 0))
 
@@ -315,9 +321,14 @@ def step(model: Model, prepared: Prepared, state: State, control: jax.Array):
     # Predict-correct: where the solved motion would carry points that were not in the buffer
     # into the plug (a stiff, light socket released by the plug springs back through a large gap
     # within one step), add them and solve again, warm-started.
-    vbar_1 = vbar_free + jnp.einsum("cdn,cd->n", prob.A, Gamma)
-    plug_1 = state.plug + T * (vp_free - s_p * jnp.sum(Gamma, axis=0))
-    phi_end, _ = _plug_sdf(model, y + T * sock.sample_disp(vbar_1) - plug_1)
+    # The path within the step is straight (x + s T vbar), but a released stiff socket can move
+    # farther than the plug is thick in one step (PMI's undamped high modes flip sign), so the
+    # path is checked at several points, not only at its end.
+    dy = T * sock.sample_disp(vbar_free + jnp.einsum("cdn,cd->n", prob.A, Gamma))
+    dp = T * (vp_free - s_p * jnp.sum(Gamma, axis=0))
+    phi_end = jnp.min(
+        jnp.stack([_plug_sdf(model, y + f * dy - state.plug - f * dp)[0] for f in _PATH_CHECKS]), axis=0
+    )
     in_buffer = jnp.zeros(phi_now.shape, bool).at[prob.idx].set(prob.active)
     fresh = (phi_end < -0.5 * model.margin) & ~in_buffer
 
@@ -357,6 +368,7 @@ def step(model: Model, prepared: Prepared, state: State, control: jax.Array):
         contact_force=Gamma,
         contact_point=prob.points,
         contact_active=active,
+        contact_index=idx,
         overflow=prob.overflow,
         residual=sol.residual,
         iterations=sol.iterations,
@@ -384,6 +396,25 @@ def _scan(model, prepared, state, controls, keep_x):
     return jax.lax.scan(body, state, controls)
 
 
+def _check_params(params: Params) -> None:
+    """Reject non-finite or impossible parameter values (skipped when they are traced)."""
+    limits = {"E": (0, None), "rho": (0, None), "nu": (-1, 0.5)}
+    for name in ("E", "nu", "rho", "alpha", "beta", "friction"):
+        v = getattr(params, name)
+        if isinstance(v, jax.core.Tracer):
+            continue
+        v = np.asarray(v)
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"Params.{name} must be finite, got {v}")
+        lo, hi = limits.get(name, (None, None))
+        bad = (v < 0) if lo is None else (v <= lo)
+        if hi is not None:
+            bad = bad | (v >= hi)
+        if np.any(bad):
+            rng = f"in ({lo}, {hi})" if hi is not None else (f"> {lo}" if lo is not None else ">= 0")
+            raise ValueError(f"Params.{name} must be {rng}, got {v}")
+
+
 def rollout(
     model: Model,
     params: Params | None = None,
@@ -405,6 +436,7 @@ def rollout(
         progress: show a progress bar (runs the scan in chunks; not for use under ``jit``).
     """
     dtype = jnp.dtype(dtype or model.dtype)
+    _check_params(model.params if params is None else params)
     prepared = _cast(prepare(model, params), dtype)
     m = _cast(model, dtype)
     if controls is None:
@@ -454,6 +486,7 @@ def _result(out: StepOutput, xs, model: Model, dtype) -> Result:
         contact_force=out.contact_force,
         contact_point=out.contact_point,
         contact_active=out.contact_active,
+        contact_index=out.contact_index,
         overflow=out.overflow,
         residual=out.residual,
         iterations=out.iterations,

@@ -1,0 +1,119 @@
+"""jsnap's full linear model against CalculiX on the default hook (refs: jsnap/data/calculix-cantilever).
+
+    python benchmarks/calculix_compare.py [--quick]
+
+Runs the default scene with the full P2 model in float64: frictionless (against CalculiX's
+linear-geometry, frictionless curve: the like-for-like reference) and with mu = 0.3 (CalculiX
+has it only with nonlinear geometry: context, not a like-for-like check); the frictionless case
+also with a nearly sharp plug (fillet 0.02 mm; CalculiX's plug has sharp corners). Reports the
+peak (raw and 5-point average, as the reference README does), the travel at the peak and the
+RMS difference of the insertion and lateral force over the reference's travel range.
+
+Writes benchmarks/results/calculix_compare.{json,png}.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+from pathlib import Path
+
+import numpy as np
+
+import jsnap
+
+OUT = Path(__file__).parent / "results"
+REF = Path(jsnap.__file__).parent / "data" / "calculix-cantilever"
+
+LIN, NLGEOM_MU03 = "snap_mu0_lin_curve.csv", "snap_mu03_nlgeom_curve.csv"
+RUNS = [
+    ("jsnap full P2, mu 0", {"contact.friction": 0.0}, LIN),
+    ("jsnap full P2, mu 0, fillet 0.02", {"contact.friction": 0.0, "plug.fillet": 0.02}, LIN),
+    ("jsnap full P2, mu 0.3", {}, NLGEOM_MU03),
+]
+
+
+def load_ref(name):
+    d = np.genfromtxt(REF / name, delimiter=",", skip_header=1)
+    return d[:, 1], d[:, 2], d[:, 3]  # travel mm, insertion force N, lateral force N
+
+
+def avg5(F):
+    return np.convolve(F, np.ones(5) / 5, mode="same")
+
+
+def compare(label, changes, ref_name, mesh):
+    scene = jsnap.load_scene().replace({"solver.mesh_size": mesh, **changes})
+    res = jsnap.rollout(jsnap.build(scene), dtype="float64")
+    tr, F, lat = (np.asarray(a) for a in (res.travel, res.insertion_force, res.lateral_force))
+    rt, rF, rlat = load_ref(ref_name)
+    m = rt <= rt.max()
+    Fi, lati = np.interp(rt[m], tr, F), np.interp(rt[m], tr, lat)
+    k, kr = int(F.argmax()), int(rF.argmax())
+    return {
+        "run": label,
+        "reference": ref_name,
+        "changes": changes,
+        "peak_N": float(F[k]),
+        "peak_avg5_N": float(avg5(F).max()),
+        "travel_at_peak_mm": float(tr[k]),
+        "lateral_at_peak_N": float(lat[k]),
+        "ref_peak_N": float(rF[kr]),
+        "ref_peak_avg5_N": float(avg5(rF).max()),
+        "ref_travel_at_peak_mm": float(rt[kr]),
+        "ref_lateral_at_peak_N": float(rlat[kr]),
+        "peak_ratio": float(F[k] / rF[kr]),
+        "rms_insertion_N": float(np.sqrt(np.mean((Fi - rF[m]) ** 2))),
+        "rms_lateral_N": float(np.sqrt(np.mean((lati - rlat[m]) ** 2))),
+        "curve": {"travel": tr.tolist(), "insertion": F.tolist(), "lateral": lat.tolist()},
+    }
+
+
+def plot(rows, path, machine):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(13, 4.8), sharex=True)
+    refs = sorted({r["reference"] for r in rows})
+    for name, ls in zip(refs, ["k--", "k:"], strict=False):
+        rt, rF, rlat = load_ref(name)
+        ax[0].plot(rt, rF, ls, lw=1.2, label=f"CalculiX {name.replace('_curve.csv', '')}")
+        ax[1].plot(rt, rlat, ls, lw=1.2)
+    for r in rows:
+        c = r["curve"]
+        ax[0].plot(c["travel"], c["insertion"], lw=1.2, label=r["run"])
+        ax[1].plot(c["travel"], c["lateral"], lw=1.2)
+    ax[0].set_ylabel("insertion force on the plug, -z (N)")
+    ax[1].set_ylabel("lateral force on the plug, x (N)")
+    for a in ax:
+        a.set_xlabel("plug travel (mm)")
+        a.grid(alpha=0.3)
+        a.set_xlim(0, 2.1)
+    ax[0].legend(fontsize=8)
+    fig.suptitle(f"Default hook: jsnap (linear FEM) against CalculiX ({machine})", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="coarse mesh (1.2 mm), frictionless only")
+    a = ap.parse_args(argv)
+    mesh = 1.2 if a.quick else 0.8
+    runs = RUNS[:1] if a.quick else RUNS
+    rows = [compare(*r, mesh) for r in runs]
+    for r in rows:
+        print({k: v for k, v in r.items() if k != "curve"}, flush=True)
+    OUT.mkdir(exist_ok=True)
+    machine = f"{platform.machine()}, {platform.processor() or platform.system()}"
+    stem = "calculix_compare_quick" if a.quick else "calculix_compare"
+    (OUT / f"{stem}.json").write_text(json.dumps({"machine": machine, "mesh_size_mm": mesh, "rows": rows}))
+    plot(rows, OUT / f"{stem}.png", machine)
+
+
+if __name__ == "__main__":
+    main()
