@@ -30,7 +30,7 @@ REQUIRED = object()
 # Values the kernels implement in this version. A scene asking for another value of these keys
 # is rejected at load time, naming the key, rather than accepted and silently replaced.
 IMPLEMENTED = {
-    ("solver", "method"): ("full",),
+    ("solver", "method"): ("full", "segmented", "reduced"),
     ("solver", "sdf"): ("analytic", "mesh", "neural"),
 }
 
@@ -90,7 +90,7 @@ _SCHEMA: dict[str, dict[str, _Key]] = {
         "friction": _Key(float, 0.3, _nonneg, doc="Coulomb coefficient mu"),
         "capacity": _Key(int, 64, _positive, doc="contact buffer slots"),
         "spacing": _Key(float, 0.02, _positive, doc="candidate spacing along the section, mm"),
-        "width_spacing": _Key(float, 0.5, _positive, doc="candidate spacing across width, mm"),
+        "width_spacing": _Key(float, 1.0, _positive, doc="candidate spacing across width, mm"),
         "margin": _Key(float, 0.02, _nonneg, doc="distance below which a point is a candidate, mm"),
         "compliance": _Key(float, 0.0, _nonneg, doc="contact regularisation per point, mm/N"),
         "solver": _Key(str, "apgd", choices=("apgd", "pgs"), doc="cone-complementarity solver"),
@@ -121,6 +121,17 @@ _SCHEMA: dict[str, dict[str, _Key]] = {
         "hook_mesh_size": _Key(float, None, _optional_positive, doc="element size at the hook"),
         "sdf": _Key(str, "analytic", choices=("analytic", "mesh", "neural")),
         "dtype": _Key(str, "float32", choices=("float32", "float64"), doc="rollout precision"),
+        # Segmented and reduced sockets (jsnap/_reduce.py, docs/reduction.md).
+        "hsv_tolerance": _Key(
+            float, 1e-2, _between(0, 1), doc="reduced: keep Hankel singular values above this x the largest"
+        ),
+        "subspace_modes": _Key(int, 30, _positive, doc="reduced: lowest modes per segment balanced over"),
+        "segment_margin": _Key(float, 1.0, _nonneg, doc="contact segment grown by this, mm"),
+        "segments": _Key(int, 1, _positive, doc="number of non-contact segments"),
+        "interface_stiffness": _Key(float, 1e6, _positive, doc="k_c joining segment copies, N/mm"),
+        "interface_damping": _Key(
+            float, None, lambda v: None if v is None or v >= 0 else "must be >= 0", doc="b_c, N s/mm (k_c dt/2)"
+        ),
     },
 }
 

@@ -443,6 +443,8 @@ def rollout(
         controls = model.trajectory()[1:]
     controls = jnp.asarray(controls, dtype)
     state = init_state(model, dtype)
+    # The plug starts moving with the drive (no start-up transient in the virtual coupling).
+    state = eqx.tree_at(lambda s: s.plug_vel, state, (controls[0] - state.plug) / jnp.asarray(model.dt, dtype))
     if not progress:
         _, (out, xs) = _scan(m, prepared, state, controls, keep_x)
         return _result(out, xs, model, dtype)

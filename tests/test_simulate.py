@@ -1,0 +1,154 @@
+"""Whole-scene checks: passivity, force balance, the curve's phases, impedance control, bad input.
+
+Coarse P2 meshes (1.2 mm) and a faster plug keep these to a few rollouts; every model is built
+and rolled out once per module.
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+import jsnap
+from jsnap._cli import main as cli_main
+from jsnap._scene import SceneError
+
+COARSE = {"solver.mesh_size": 1.2, "solver.dtype": "float64", "motion.speed": 20.0}
+# CalculiX, linear geometry, frictionless, default hook (jsnap/data/calculix-cantilever).
+CALCULIX_PEAK_N = 2.486
+
+
+def _run(changes, **kw):
+    scene = jsnap.load_scene().replace({**COARSE, **changes})
+    model = jsnap.build(scene)
+    return scene, model, jsnap.rollout(model, **kw)
+
+
+@pytest.fixture(scope="module")
+def cycle():
+    """Frictionless insertion and withdrawal of a releasable hook (45° return face), D = 0."""
+    return _run({"contact.friction": 0.0, "connector.return_angle": 45.0, "motion.withdraw": True})
+
+
+@pytest.fixture(scope="module")
+def default_coarse():
+    """The default scene (mu = 0.3) on a coarse mesh, insertion only."""
+    return _run({})
+
+
+def test_passive_with_contact(cycle):
+    """The socket never holds more energy than the plug has put into it."""
+    _, _, res = cycle
+    E = np.asarray(res.energy)
+    W = np.cumsum(np.asarray(res.work))
+    assert E.max() > 0.3  # the hook really was bent (N mm)
+    # Round-off and the contact solver's tolerance (KKT residual 1e-6) allow a few 1e-6.
+    assert np.all(E <= W + 1e-5 * E.max())
+    # After release and withdrawal the hook only vibrates: what is left is a small fraction.
+    assert E[-1] < 0.02 * E.max()
+
+
+def test_base_wrench_balances_contact(cycle):
+    """Quasi-static: the base reaction balances the contact force (the arm's inertia is tiny)."""
+    _, _, res = cycle
+    contact = np.asarray(res.contact_force).sum(axis=1)  # on the socket
+    base = np.asarray(res.base_force)
+    scale = np.abs(contact).max()
+    assert np.abs(base + contact).max() < 2e-2 * scale
+
+
+def test_insertion_peak_against_calculix(default_coarse):
+    """Peak insertion force of the full linear model, frictionless, within 10% of CalculiX's
+    (linear geometry), at about the same travel (the ridge reaches the plug's fillet)."""
+    _, model, _ = default_coarse
+    res = jsnap.rollout(model, model.params.replace(friction=0.0))  # same shapes: no recompile
+    F = np.asarray(res.insertion_force)
+    k = int(F.argmax())
+    assert abs(F[k] / CALCULIX_PEAK_N - 1) < 0.10
+    assert abs(float(res.travel[k]) - 1.245) < 0.1
+
+
+def test_retention_force_on_withdrawal(cycle):
+    """Withdrawal pulls the hook out over its 45° return face (a negative, retention force), and
+    the plug comes free: no force at the end."""
+    _, model, res = cycle
+    F = np.asarray(res.insertion_force)
+    n_in = round(model.stroke / model.speed / model.dt)
+    assert F[n_in:].min() < -0.5
+    assert np.abs(F[-3:]).max() < 1e-3  # back at the start, clear of the hook
+
+
+def test_curve_phases(default_coarse):
+    """Ramp rise, peak, snap (the hook pulls the plug in) and latch (the arm back at rest)."""
+    _, _, res = default_coarse
+    F, travel = np.asarray(res.insertion_force), np.asarray(res.travel)
+    k = int(F.argmax())
+    ramp = (travel > 0.2) & (travel < 0.8 * travel[k])
+    assert np.all(np.diff(F[ramp]) > -0.02 * F[k])  # rises (up to small ripple)
+    assert F[k] > 2.0
+    assert F[k:].min() < -0.2 * F[k]  # snap: negative insertion force after the peak
+    tail = travel > travel[-1] - 0.1
+    assert np.abs(F[tail]).max() < 0.02 * F[k]  # latched: no force left
+    assert int(np.asarray(res.overflow).max()) == 0
+
+
+def test_impedance_control_tracks_position_control(default_coarse):
+    """A stiff virtual coupling reproduces position control; the coupling force is the haptic
+    force (it balances the contact force on the light plug), and a soft coupling lags by F/k."""
+    scene, _, ref = default_coarse
+    stiff = jsnap.build(scene.replace({"motion.control": "impedance", "motion.coupling_stiffness": 1e4}))
+    res = jsnap.rollout(stiff)
+    F, F_ref = np.asarray(res.insertion_force), np.asarray(ref.insertion_force)
+    assert abs(F.max() / F_ref.max() - 1) < 0.03
+    coupling_z = np.asarray(res.coupling_force)[:, 2]
+    contact_z = np.asarray(res.contact_force).sum(axis=1)[:, 2]
+    # (the last step is left out: the drive stops there, and the coupling's damper feels it)
+    assert np.abs(coupling_z - contact_z)[:-1].max() < 0.02 * F.max()
+    # A soft coupling (the haptic case): the plug lags, and the force rendered is the spring-
+    # damper law on the plug's actual (midpoint) motion relative to the drive's.
+    soft = jsnap.build(scene.replace({"motion.control": "impedance", "motion.coupling_stiffness": 50.0}))
+    res = jsnap.rollout(soft)
+    target = np.asarray(soft.trajectory())[:, 2]
+    plug = np.concatenate([[soft.plug_start[2]], np.asarray(res.plug)[:, 2]])
+    T, b = soft.dt, scene["motion"]["coupling_damping"]
+    law = (
+        50.0 * (0.5 * (target[1:] + target[:-1]) - 0.5 * (plug[1:] + plug[:-1]))
+        + b * (np.diff(target) - np.diff(plug)) / T
+    )
+    Fz = np.asarray(res.coupling_force)[:, 2]
+    assert np.abs(Fz - law).max() < 1e-6 * np.abs(Fz).max()
+    assert (plug - target).max() > 0.02  # it really lags (mm)
+
+
+def test_bad_parameters_are_errors(default_coarse):
+    _, model, _ = default_coarse
+    for field, value in (("E", float("nan")), ("friction", float("inf")), ("nu", 0.5), ("rho", -1.0)):
+        with pytest.raises(ValueError, match=f"Params.{field}"):
+            jsnap.rollout(model, model.params.replace(**{field: value}))
+
+
+def test_motion_that_never_touches_is_an_error():
+    with pytest.raises(SceneError, match="never touches"):
+        jsnap.build(jsnap.load_scene().replace({**COARSE, "motion.stroke": 0.01}))
+
+
+def test_small_buffer_overflow_is_reported(default_coarse):
+    scene, _, _ = default_coarse
+    model = jsnap.build(scene.replace({"contact.capacity": 4}))
+    res = jsnap.rollout(model, controls=model.trajectory()[1:80])
+    assert int(np.asarray(res.overflow).max()) > 0
+
+
+def test_cli_simulate_writes_outputs(tmp_path, capsys):
+    scene = tmp_path / "s.toml"
+    text = open(jsnap.load_scene().source).read()
+    scene.write_text(text.replace("mesh_size = 0.8", "mesh_size = 1.5").replace("speed = 10.0", "speed = 40.0"))
+    assert cli_main(["simulate", str(scene), "--out", str(tmp_path / "out"), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    for key in ("steps", "dt", "steps_per_second", "peak_insertion_force_N", "peak_base_force_N", "dof"):
+        assert key in summary
+    assert summary["peak_insertion_force_N"] > 0
+    for name in ("forces.csv", "forces.png", "summary.json", "vtu/socket.pvd"):
+        assert (tmp_path / "out" / name).is_file()
+    csv = np.loadtxt(tmp_path / "out" / "forces.csv", delimiter=",", skiprows=1)
+    assert csv.shape[0] == summary["steps"]
