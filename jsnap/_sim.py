@@ -427,6 +427,11 @@ def _check_params(params: Params) -> None:
             raise ValueError(f"Params.{name} must be {rng}, got {v}")
 
 
+def progress_chunk(n_steps: int) -> int:
+    """Steps per compiled chunk when ``rollout`` shows progress (20 updates)."""
+    return max(1, math.ceil(n_steps / 20))
+
+
 def rollout(
     model: Model,
     params: Params | None = None,
@@ -435,6 +440,7 @@ def rollout(
     dtype=None,
     keep_x: bool = False,
     progress: bool = False,
+    prepared: Prepared | None = None,
 ) -> Result:
     """Run the scene's motion (or ``controls``) from rest and return the history.
 
@@ -446,10 +452,14 @@ def rollout(
         dtype: rollout precision, ``"float32"`` or ``"float64"`` (default: the scene's).
         keep_x: also return the displacement history (``Result.x``).
         progress: show a progress bar (runs the scan in chunks; not for use under ``jit``).
+        prepared: ``prepare(model, params)`` computed once and reused (it factorises the PMI
+            operator, ~n^3 for the full model); ``params`` is then ignored.
     """
     dtype = jnp.dtype(dtype or model.dtype)
-    _check_params(model.params if params is None else params)
-    prepared = _cast(prepare(model, params), dtype)
+    if prepared is None:
+        _check_params(model.params if params is None else params)
+        prepared = prepare(model, params)
+    prepared = _cast(prepared, dtype)
     m = _cast(model, dtype)
     if controls is None:
         controls = model.trajectory()[1:]
@@ -462,7 +472,7 @@ def rollout(
         return _result(out, xs, model, dtype)
     from tqdm.auto import tqdm
 
-    chunk = max(1, math.ceil(controls.shape[0] / 20))
+    chunk = progress_chunk(controls.shape[0])
     outs, xs_all = [], []
     with tqdm(total=controls.shape[0], unit="step", desc="jsnap rollout") as bar:
         for i in range(0, controls.shape[0], chunk):
