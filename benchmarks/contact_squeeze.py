@@ -62,6 +62,7 @@ def main(argv=None):
     ap.add_argument("--per-side", type=int, default=4, help="contacts per hook")
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
+    STEM = "contact_squeeze_quick" if args.quick else "contact_squeeze"  # quick runs never overwrite full ones
     ratios = args.ratios or ([1e2, 1e3] if args.quick else [1e1, 1e2, 1e3, 1e4])
     iters = args.iters or (2000 if args.quick else 5000)
     repeats = args.repeats or (3 if args.quick else 7)
@@ -143,7 +144,7 @@ def main(argv=None):
         "problems": records,
     }
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "contact_squeeze.json").write_text(json.dumps(out, indent=1))
+    (args.out / f"{STEM}.json").write_text(json.dumps(out, indent=1))
 
     fig, ax = plt.subplots(figsize=(7.5, 4.8))
     colors = plt.cm.viridis(np.linspace(0, 0.85, len(records)))
@@ -163,8 +164,8 @@ def main(argv=None):
     ax.legend(fontsize=7, loc="upper right")
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
-    fig.savefig(args.out / "contact_squeeze.png", dpi=130)
-    print(f"wrote {args.out / 'contact_squeeze.json'} and contact_squeeze.png")
+    fig.savefig(args.out / f"{STEM}.png", dpi=130)
+    print(f"wrote {args.out / (STEM + '.json')} and {STEM}.png")
 
 
 if __name__ == "__main__":

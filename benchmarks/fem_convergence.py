@@ -57,7 +57,8 @@ def main():
         "calculix_converged_mm": 0.7695,
         "machine": platform.node(),
     }
-    path = Path(__file__).parent / "results" / "fem_convergence.json"
+    stem = "fem_convergence_quick" if a.quick else "fem_convergence"  # quick never overwrites full
+    path = Path(__file__).parent / "results" / f"{stem}.json"
     path.write_text(json.dumps(out, indent=2))
     print(json.dumps({k: v for k, v in out.items() if k != "rows"}, indent=2))
 

@@ -83,6 +83,7 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=None)
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
+    STEM = "sdf_speed_quick" if args.quick else "sdf_speed"  # quick runs never overwrite full ones
     repeats = args.repeats or (10 if args.quick else 20)
     sizes = [1024] if args.quick else [256, 1024, 4096, 16384]
     subdivisions = [4] if args.quick else [3, 4, 5]
@@ -163,7 +164,7 @@ def main(argv=None):
         by_triangles=tri_records,
     )
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "sdf_speed.json").write_text(json.dumps(out, indent=1))
+    (args.out / f"{STEM}.json").write_text(json.dumps(out, indent=1))
 
     fig, ax = plt.subplots(1, 2, figsize=(12, 4.6))
     style = dict(
@@ -200,8 +201,8 @@ def main(argv=None):
     load = ", ".join(f"{x:.1f}" for x in out["load_average"])
     fig.suptitle(f"SDF query speed (jax {jax.__version__})\n{machine()}, load average {load}", fontsize=10)
     fig.tight_layout()
-    fig.savefig(args.out / "sdf_speed.png", dpi=120)
-    print(f"wrote {args.out / 'sdf_speed.json'} and sdf_speed.png")
+    fig.savefig(args.out / f"{STEM}.png", dpi=120)
+    print(f"wrote {args.out / (STEM + '.json')} and {STEM}.png")
     return 0 if out["headline"]["passed"] else 1
 
 

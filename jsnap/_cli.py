@@ -273,9 +273,21 @@ def main(argv=None) -> int:
     tr.add_argument("--json", action="store_true", help="print a JSON summary to stdout")
     for name, kind in _SDF_SETTINGS.items():
         tr.add_argument(f"--{name}", type=kind, default=None, help="training setting (see docs/neural_sdf.md)")
+    bench = sub.add_parser("bench", help="run benchmarks/ scripts and regenerate benchmarks/README.md")
+    bench.add_argument("names", nargs="*", help="benchmarks to run (default: all; see --list)")
+    bench.add_argument("--quick", action="store_true", help="the quick variants (CI: a few minutes)")
+    bench.add_argument("--list", action="store_true", help="list the benchmarks and exit")
     args = parser.parse_args(argv)
     if args.command == "train-sdf":
         return train_sdf(args)
+    if args.command == "bench":
+        from jsnap import _bench
+
+        try:
+            return _bench.main(args.names, args.quick, args.list)
+        except FileNotFoundError as err:
+            print(f"jsnap: error: {err}", file=sys.stderr)
+            return 2
     from jsnap._scene import SceneError
 
     try:

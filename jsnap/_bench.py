@@ -1,0 +1,199 @@
+"""``jsnap bench [NAME ...] [--quick] [--list]``: run the benchmark scripts and regenerate the
+table in ``benchmarks/README.md`` from their results.
+
+Each benchmark is a script ``benchmarks/<name>.py`` that writes ``benchmarks/results/<stem>.json``
+(and PNG charts); ``--quick`` passes ``--quick`` to the scripts that have a quick variant (CI runs
+it so the benchmarks never rot). The benchmarks live in the source tree, not in the installed
+package: run ``jsnap bench`` from a checkout (or set ``JSNAP_BENCHMARKS`` to the folder).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+
+@dataclass(frozen=True)
+class Bench:
+    name: str
+    what: str
+    quick: bool  # the script has a --quick variant
+    summary: object  # (result dict) -> str, the headline
+
+
+def _fmt(x, p=3):
+    return f"{x:.{p}g}"
+
+
+def _calculix(d):
+    rows = {r["run"]: r for r in d["rows"]}
+    r = rows.get("jsnap full P2, mu 0") or d["rows"][0]
+    out = f"peak {r['peak_N']:.3f} N vs CalculiX {r['ref_peak_N']:.3f} N (×{r['peak_ratio']:.3f})"
+    sharp = rows.get("jsnap full P2, mu 0, fillet 0.02")
+    if sharp:
+        rel = 100 * sharp["rms_insertion_rise_N"] / sharp["ref_peak_N"]
+        out += f"; sharp plug: RMS on the rise {rel:.1f} % of peak"
+    return out
+
+
+def _design_guide(d):
+    ratios = [r["ratio"] for r in d["rows"]]
+    ax = [r["f_axial"] for r in d["rows"]]
+    ang = [r["f_angle"] for r in d["rows"]]
+    return (
+        f"{len(ratios)} hooks: jsnap/guide {min(ratios):.2f}–{max(ratios):.2f}; axial-moment factor "
+        f"{min(ax):.2f}–{max(ax):.2f}, hook-rotation factor {min(ang):.2f}–{max(ang):.2f}"
+    )
+
+
+def _sdf_speed(d):
+    h = d["headline"]
+    return (
+        f"1024 points: exact mesh {h['exact_mesh_ms']:.1f} ms, neural {h['neural_ms']:.2f} ms "
+        f"(×{h['speedup']:.0f})"
+    )
+
+
+def _sdf_accuracy(d):
+    a = d["accuracy"]
+    return (
+        f"mean abs. error {a['mae_mm'] * 1e3:.2f} µm within {a['band_mm']} mm, median normal error "
+        f"{a['normal_median_deg']:.2f}°, training {d['train_seconds']:.0f} s"
+    )
+
+
+def _sdf_scene(d):
+    runs = d["runs"]
+    n = runs["neural"]
+    rates = ", ".join(f"{k} {v['steps_per_second']:.1f}" for k, v in runs.items())
+    return f"neural vs exact mesh RMSE {100 * n['rmse_vs_mesh_rel_peak']:.2f} % of peak; steps/s: {rates}"
+
+
+def _contact_squeeze(d):
+    worst = max(d["problems"], key=lambda p: p["condition_number"])
+    s = worst["solvers"]
+    apgd, pgs = s["APGD"], s["PGS"]
+    cap = d["iteration_cap"]
+    pgs_txt = f"{pgs['iterations_to_tol']}" if pgs.get("converged") else f"not converged in {cap}"
+    return (
+        f"squeeze, cond {_fmt(worst['condition_number'])}: APGD {apgd['iterations_to_tol']} iterations, "
+        f"PGS {pgs_txt}"
+    )
+
+
+def _fem_convergence(d):
+    return (
+        f"P2 tip deflection → {d['richardson_mm']:.4f} mm (Richardson, order {d['observed_order']:.2f}); "
+        f"CalculiX {d['calculix_converged_mm']} mm"
+    )
+
+
+def _generic(d):
+    for key in ("summary", "headline"):
+        if key in d:
+            return json.dumps(d[key])[:160]
+    return "see JSON"
+
+
+BENCHMARKS = [
+    Bench("calculix_compare", "full model against CalculiX (independent FEM)", True, _calculix),
+    Bench("design_guide", "peak force against the snap-fit design guide, gap decomposed", True, _design_guide),
+    Bench("sdf_accuracy", "neural SDF accuracy and training time (default plug)", False, _sdf_accuracy),
+    Bench("sdf_speed", "SDF query speed: neural against exact mesh", True, _sdf_speed),
+    Bench("sdf_scene", "default scene with each SDF: force RMSE and step rate", True, _sdf_scene),
+    Bench("contact_squeeze", "APGD against PGS on the symmetric squeeze", True, _contact_squeeze),
+    Bench("fem_convergence", "cantilever tip deflection under refinement, P1/P2", True, _fem_convergence),
+    Bench("stability", "nonlinear (SVK) integrators against linear PMI (the paper's Fig. 3)", True, _generic),
+    Bench("reduction_speed", "segmented / reduced models: accuracy and step rate", True, _generic),
+    Bench("identify", "parameter identification from a measured force", True, _generic),
+]
+
+
+def benchmarks_dir() -> Path:
+    env = os.environ.get("JSNAP_BENCHMARKS")
+    candidates = [Path(env)] if env else []
+    candidates += [Path.cwd() / "benchmarks", Path(__file__).resolve().parent.parent / "benchmarks"]
+    for c in candidates:
+        if c.is_dir():
+            return c
+    raise FileNotFoundError(
+        "benchmarks/ not found: run `jsnap bench` from a jsnap checkout or set JSNAP_BENCHMARKS"
+    )
+
+
+def available(root: Path) -> list[Bench]:
+    return [b for b in BENCHMARKS if (root / f"{b.name}.py").is_file()]
+
+
+def _result(root: Path, name: str, quick: bool):
+    for stem in ([f"{name}_quick"] if quick else []) + [name]:
+        path = root / "results" / f"{stem}.json"
+        if path.is_file():
+            return path, json.loads(path.read_text())
+    return None, None
+
+
+def write_readme(root: Path) -> Path:
+    """Regenerate ``benchmarks/README.md`` from the results present."""
+    lines = [
+        "# Benchmarks",
+        "",
+        "Regenerated by `jsnap bench` from `benchmarks/results/*.json` (do not edit by hand).",
+        "`jsnap bench NAME` runs one script, `jsnap bench --quick` the quick variants (CI),",
+        "`jsnap bench` all of them. Each chart names the machine it ran on.",
+        "",
+        "| benchmark | what | headline (full run) | results |",
+        "|---|---|---|---|",
+    ]
+    for b in available(root):
+        path, data = _result(root, b.name, quick=False)
+        if data is None:
+            head, files = "not run yet", ""
+        else:
+            try:
+                head = b.summary(data)
+            except (KeyError, TypeError, ValueError, IndexError) as err:
+                head = f"result file not understood ({type(err).__name__}: {err})"
+            pngs = sorted(p.name for p in (root / "results").glob(f"{b.name}*.png") if "_quick" not in p.name)
+            files = ", ".join(f"[{n}](results/{n})" for n in [path.name, *pngs])
+        lines.append(f"| `{b.name}` | {b.what} | {head} | {files} |")
+    out = root / "README.md"
+    out.write_text("\n".join(lines) + "\n")
+    return out
+
+
+def main(names: list[str], quick: bool, list_only: bool) -> int:
+    root = benchmarks_dir()
+    benches = available(root)
+    if list_only:
+        for b in benches:
+            print(f"{b.name:18s} {b.what}{'' if b.quick else '  (no quick variant)'}")
+        return 0
+    known = {b.name: b for b in benches}
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        print(f"jsnap bench: unknown benchmark(s) {unknown}; known: {sorted(known)}", file=sys.stderr)
+        return 2
+    todo = [known[n] for n in names] if names else benches
+    failed = []
+    for b in todo:
+        if quick and not b.quick:
+            print(f"jsnap bench: {b.name}: no quick variant, skipped", file=sys.stderr)
+            continue
+        cmd = [sys.executable, str(root / f"{b.name}.py")] + (["--quick"] if quick else [])
+        print(f"jsnap bench: {b.name} ...", file=sys.stderr, flush=True)
+        t0 = time.perf_counter()
+        rc = subprocess.call(cmd, cwd=root.parent)
+        dt = time.perf_counter() - t0
+        status = "ok" if rc == 0 else f"FAILED (exit {rc})"
+        print(f"jsnap bench: {b.name} {status} in {dt:.0f} s", file=sys.stderr)
+        if rc != 0:
+            failed.append(b.name)
+    readme = write_readme(root)
+    print(f"jsnap bench: wrote {readme}", file=sys.stderr)
+    return 1 if failed else 0

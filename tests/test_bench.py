@@ -1,0 +1,34 @@
+"""`jsnap bench`: the runner, the README table it regenerates, and a quick benchmark end to end."""
+
+import json
+import shutil
+from pathlib import Path
+
+from jsnap import _bench
+from jsnap._cli import main as cli_main
+
+ROOT = Path(__file__).resolve().parent.parent / "benchmarks"
+
+
+def test_list_and_unknown_names(capsys):
+    assert cli_main(["bench", "--list"]) == 0
+    listed = capsys.readouterr().out
+    for b in _bench.available(ROOT):
+        assert b.name in listed
+    assert cli_main(["bench", "no_such_benchmark"]) == 2
+
+
+def test_readme_table_from_results(tmp_path, monkeypatch):
+    """The table has one row per script, the headline from its JSON, 'not run yet' without one."""
+    bench = tmp_path / "benchmarks"
+    (bench / "results").mkdir(parents=True)
+    for name in ("contact_squeeze", "fem_convergence"):
+        shutil.copy(ROOT / f"{name}.py", bench / f"{name}.py")
+    result = {"richardson_mm": 0.7696, "observed_order": 2.07, "calculix_converged_mm": 0.7695, "rows": []}
+    (bench / "results" / "fem_convergence.json").write_text(json.dumps(result))
+    monkeypatch.setenv("JSNAP_BENCHMARKS", str(bench))
+    text = _bench.write_readme(_bench.benchmarks_dir()).read_text()
+    rows = [line for line in text.splitlines() if line.startswith("| `")]
+    assert len(rows) == 2
+    assert "0.7696 mm" in next(r for r in rows if "fem_convergence" in r)
+    assert "not run yet" in next(r for r in rows if "contact_squeeze" in r)
