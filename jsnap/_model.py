@@ -425,6 +425,7 @@ def build(scene: Scene, *, progress: bool = False) -> Model:
             seeds,
             (fnodes, weights),
             (st_nodes, st_weights),
+            normals,
             scene,
             progress=progress,
         )

@@ -1,0 +1,1113 @@
+"""Segmentation and passive balanced model reduction of the socket (the paper's Models 3 and 4).
+
+**Segmentation** (``solver.method = "segmented"``). The elements that own the faces of the
+contact candidate points and of their normal stencils (``_model.build``), grown by
+``solver.segment_margin`` mm, form the *contact segment*; the other elements form
+``solver.segments`` non-contact segments (cut by graph distance from the contact segment).
+Every segment has its own copy of the nodes it shares with another; the copies are joined by
+PMI spring-dampers ``(k_c, b_c)`` (``solver.interface_stiffness``, ``interface_damping``).
+The joined system is again a linear PMI system, block-diagonal but for the coupling:
+
+    M = diag(M_i),   K = diag(K_i) + k_c G,   D = diag(D_i) + b_c G,   G = Dg' Dg,
+
+with ``Dg`` the difference operator of the joined copies. It is passive for any ``k_c, b_c >= 0``
+and tends to the full model as ``k_c`` grows. The coupling is eliminated analytically once per
+parameter set: with dense operators it is part of ``S^-1`` (a Schur complement in all but
+name, see :meth:`ReducedSocket.prepare`).
+
+**Balanced reduction** (``solver.method = "reduced"``). Each segment's displacement is
+``x_i = V_i z_i`` (a one-sided congruence), so ``M_r = V'MV``, ``K_r = V'KV``, ``D_r = V'DV``
+stay symmetric positive (semi)definite and PMI applies unchanged: the reduced model is passive
+by construction, for every parameter set. Two-sided (Petrov-Galerkin) balanced truncation is
+not used: it breaks the symmetry that passivity rests on. ``V_i`` is built per segment as a
+Craig-Bampton basis whose interior part is balanced:
+
+* *interface shapes*: the six rigid motions of the interface nodes plus the dominant interface
+  traces of the full model's static responses to contact loads, truncated at the tolerance;
+  every segment gets the same shapes on its copy of the interface, extended statically into
+  its interior (constraint modes). The interface traces of all segments therefore span the same
+  space: stiff coupling does not lock, and the joined reduced model contains the exact static
+  response whenever the interface motion lies in that space.
+* *interior* (interface held): inside a subspace that a sparse solver affords (the lowest
+  fixed-interface modes by shift-invert Lanczos, plus the static responses to the segment's
+  inputs: contact loads on the contact segment, the inertia loads of the interface shapes on
+  the others), the position Gramians of ``M q'' + D q' + K q = B u, y = B' q`` are computed
+  exactly for a nominal modal damping (:data:`GRAMIAN_DAMPING`), balanced, and truncated where
+  the Hankel singular values fall below ``solver.hsv_tolerance`` times the largest.
+* *static correction* (contact segment): the static compliance at the contact points that the
+  truncation lost is put back, directions above the same relative tolerance, so quasi-static
+  insertion forces (set by that compliance) stay right.
+
+``V`` is computed once at the scene's material and held fixed: the stored blocks are
+parameter-free (``V'K_lam V``, ``V'K_mu V``, ``V'M1 V``, ``Dg V``, base-reaction rows), so E, nu,
+rho, alpha, beta stay exact and differentiable without rebuilding the basis. Reduced models are
+cached on disk under a hash of everything they depend on (:func:`load_or_build`).
+
+Units: mm, N, MPa, s, tonne.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+import os
+import tempfile
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+import skfem
+
+from jsnap._fem import _ELEMENTS, Assembly, _k_lam, _k_mu, _m1, lame
+from jsnap._integrate import Material
+from jsnap._neural_sdf import _checksum, cache_dir
+
+__all__ = [
+    "FORMAT_VERSION",
+    "GRAMIAN_DAMPING",
+    "ReducedModelFileError",
+    "ReducedOperator",
+    "ReducedSocket",
+    "Segmentation",
+    "build_socket",
+    "load",
+    "load_or_build",
+    "save",
+    "segment",
+]
+
+FORMAT_NAME = "jsnap.reduced_socket"
+# Bump when the file layout, the meaning of a stored field or the reduction algorithm changes;
+# older files are rejected (and rebuilt by load_or_build).
+FORMAT_VERSION = 1
+
+# Modal damping ratio under which the position Gramians are computed. The socket may have no
+# damping at all (the default scene), and the Gramians of an undamped system do not exist. For
+# well-separated modes the position Hankel singular values are |b_k|^2 / (4 zeta omega_k^2): all
+# scale by 1/zeta alike, so the truncation (relative to the largest) barely depends on it.
+GRAMIAN_DAMPING = 0.05
+
+
+class ReducedModelFileError(ValueError):
+    """A reduced-model file is unreadable, corrupt, of another format version, or for another
+    scene (mesh, contact points, settings)."""
+
+
+# --------------------------------------------------------------------------------------------
+# Segmentation (host)
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class Segmentation:
+    """A socket mesh cut into segments whose shared nodes are duplicated.
+
+    Attributes:
+        element_segment: (m,) segment of each element; 0 is the contact segment.
+        nodes: per segment, the sorted global node ids (``Assembly.nodes`` numbering) of its
+            unclamped nodes; the segment's local dofs are ``3 * local_node + component``.
+        pairs: (p, 4) joined copies ``(segment_a, local_node_a, segment_b, local_node_b)``:
+            one spring-damper per pair and component.
+    """
+
+    element_segment: np.ndarray
+    nodes: tuple[np.ndarray, ...]
+    pairs: np.ndarray
+
+    @property
+    def n_segments(self) -> int:
+        return len(self.nodes)
+
+    def interface_nodes(self, i: int) -> np.ndarray:
+        """(k,) sorted local node indices of segment ``i`` that are joined to another segment."""
+        p = self.pairs
+        return np.unique(np.concatenate([p[p[:, 0] == i, 1], p[p[:, 2] == i, 3]]))
+
+
+def _face_owners(asm: Assembly, faces: np.ndarray) -> np.ndarray:
+    """(f,) element owning each boundary face (f, 3) (vertex ids)."""
+    from jsnap._geometry import _TET_FACES
+
+    cells = asm.mesh.cells
+    all_faces = np.sort(cells[:, _TET_FACES].reshape(-1, 3), axis=1)
+    lookup = {tuple(f): i // 4 for i, f in enumerate(all_faces)}
+    try:
+        return np.array([lookup[tuple(f)] for f in np.sort(faces, axis=1)], dtype=np.int64)
+    except KeyError:
+        raise ValueError("segment: a seed face is not a face of the mesh") from None
+
+
+def segment(asm: Assembly, seed_faces: np.ndarray, margin: float, n_rest: int = 1) -> Segmentation:
+    """Cut the mesh into a contact segment and ``n_rest`` non-contact segments.
+
+    Args:
+        asm: the assembled socket.
+        seed_faces: (f, 3) vertex ids of the boundary faces the plug can touch (the faces of the
+            contact candidate points and of their normal stencils).
+        margin: elements whose centroid lies within ``margin`` (mm) of a node of an element
+            owning a seed face join the contact segment.
+        n_rest: number of non-contact segments; the elements outside the contact segment are
+            cut into this many pieces of about equal size by their graph distance (elements
+            sharing a vertex) from the contact segment, so each piece touches the previous one.
+
+    Raises:
+        ValueError: no seed face, nothing left outside the contact segment, or more segments
+            asked for than elements are left.
+    """
+    from scipy.spatial import cKDTree
+
+    mesh = asm.mesh
+    cells = mesh.cells
+    if len(seed_faces) == 0:
+        raise ValueError("segment: no seed face (the plug never comes near the socket)")
+    seed_faces = np.asarray(seed_faces)
+    seed = np.unique(_face_owners(asm, seed_faces))
+    centroids = mesh.points[cells].mean(axis=1)
+    near = cKDTree(mesh.points[np.unique(cells[seed])]).query(centroids)[0] <= margin
+    contact = np.zeros(len(cells), dtype=bool)
+    contact[seed] = True
+    contact |= near
+    # Every element touching a seed face joins too, so no contact node lies on an interface.
+    contact |= np.isin(cells, seed_faces).any(axis=1)
+    rest = np.flatnonzero(~contact)
+    if rest.size == 0:
+        raise ValueError(
+            f"solver.segment_margin = {margin!r}: the contact segment holds the whole socket, "
+            "there is nothing to segment (use a smaller margin or solver.method = 'full')"
+        )
+    if n_rest > rest.size:
+        raise ValueError(
+            f"solver.segments = {n_rest}: only {rest.size} elements lie outside the contact segment"
+        )
+    label = np.zeros(len(cells), dtype=np.int64)
+    if n_rest > 1:
+        # Breadth-first levels over vertex-sharing elements, from the contact segment.
+        n_vert = mesh.points.shape[0]
+        inc = sp.csr_matrix(
+            (np.ones(cells.size), (np.repeat(np.arange(len(cells)), 4), cells.ravel())),
+            shape=(len(cells), n_vert),
+        )
+        adj = (inc @ inc.T).tocsr()
+        level = np.full(len(cells), -1)
+        frontier = np.flatnonzero(contact)
+        level[frontier] = 0
+        d = 0
+        while frontier.size:
+            d += 1
+            nxt = np.unique(adj[frontier].indices)
+            nxt = nxt[level[nxt] < 0]
+            level[nxt] = d
+            frontier = nxt
+        if np.any(level[rest] < 0):
+            raise ValueError("segment: the mesh is not connected")
+        order = rest[np.argsort(level[rest], kind="stable")]
+        for k, chunk in enumerate(np.array_split(order, n_rest)):
+            label[chunk] = k + 1
+    else:
+        label[rest] = 1
+    clamped = np.zeros(asm.nodes.shape[0], dtype=bool)
+    clamped[asm.fixed[0::3] // 3] = True
+    nodes = []
+    for i in range(n_rest + 1):
+        ids = np.unique(asm.cells[label == i])
+        nodes.append(ids[~clamped[ids]])
+    # Copies of one node in segments s1 < s2 < ... are joined in a chain s1-s2, s2-s3, ...
+    owners: dict[int, list[tuple[int, int]]] = {}
+    for i, ids in enumerate(nodes):
+        for local, g in enumerate(ids):
+            owners.setdefault(int(g), []).append((i, local))
+    pairs = [(*a, *b) for copies in owners.values() for a, b in itertools.pairwise(copies)]
+    return Segmentation(label, tuple(nodes), np.array(pairs, dtype=np.int64).reshape(-1, 4))
+
+
+def _dofs(nodes: np.ndarray) -> np.ndarray:
+    return (3 * np.asarray(nodes)[:, None] + np.arange(3)).ravel()
+
+
+def segment_blocks(asm: Assembly, seg: Segmentation, i: int):
+    """Parameter-free blocks of segment ``i`` from its own elements only.
+
+    Returns ``(blocks, reaction)``: ``blocks`` the (n_i, n_i) CSR matrices ``K_lam, K_mu, M1`` on
+    the segment's local dofs, ``reaction`` the (n_fixed, n_i) rows of the same matrices at the
+    clamped base dofs (``asm.fixed``), for the base wrench.
+    """
+    elements = np.flatnonzero(seg.element_segment == i)
+    basis = skfem.Basis(asm.basis.mesh, skfem.ElementVector(_ELEMENTS[asm.element]()), elements=elements)
+    dofs = _dofs(seg.nodes[i])
+    out, react = [], []
+    for form in (_k_lam, _k_mu, _m1):
+        A = form.assemble(basis).tocsr()
+        out.append(A[dofs][:, dofs].tocsr())
+        react.append(A[asm.fixed][:, dofs].tocsr())
+    return out, react
+
+
+# --------------------------------------------------------------------------------------------
+# Balanced reduction (host, float64)
+# --------------------------------------------------------------------------------------------
+
+
+def _m_orthonormal(U: np.ndarray, M, rtol: float = 1e-10) -> np.ndarray:
+    """A basis of range(U) (n, k) orthonormal in the M inner product, rank-revealing."""
+    if U.shape[1] == 0:
+        return U
+    scale = np.linalg.norm(U, axis=0)
+    U = U[:, scale > 0] / scale[scale > 0]
+    G = U.T @ (M @ U)
+    lam, Q = np.linalg.eigh(0.5 * (G + G.T))
+    keep = lam > rtol * lam.max()
+    W = U @ (Q[:, keep] / np.sqrt(lam[keep]))
+    # One more pass (Cholesky-QR style) removes the round-off of the first.
+    G = W.T @ (M @ W)
+    L = np.linalg.cholesky(0.5 * (G + G.T))
+    return sla.solve_triangular(L, W.T, lower=True).T
+
+
+def position_gramians(omega: np.ndarray, b: np.ndarray, zeta: float = GRAMIAN_DAMPING):
+    """Position Gramians of ``q'' + 2 zeta Omega q' + Omega^2 q = b u``, ``y = b' q`` (modal form).
+
+    Exact solutions of the first-order Lyapunov equations of the state ``(q, q')``, through the
+    closed-form eigenvectors ``(1, lambda)`` of each mode's 2x2 block; the position Gramians are
+    their ``q``-blocks.
+
+    Args:
+        omega: (s,) angular frequencies > 0, rad/s.
+        b: (s, m) modal input matrix (the output matrix is its transpose).
+        zeta: modal damping ratio in (0, 1).
+
+    Returns:
+        ``(P_p, Q_p)``, (s, s) symmetric positive semidefinite.
+    """
+    w = np.asarray(omega, dtype=np.float64)
+    root = np.sqrt(1.0 - zeta**2)
+    lam = np.stack([w * (-zeta + 1j * root), w * (-zeta - 1j * root)], axis=1)  # (s, 2): slots +, -
+    d = lam[:, 1] - lam[:, 0]  # (s,)
+    bb = b @ b.T
+    sgn = np.array([-1.0, 1.0])
+    # Controllability: slot a of mode j has input row sgn_a b_j / d_j.
+    denom = lam[:, None, :, None] + np.conj(lam)[None, :, None, :]  # (j, k, a, c)
+    wc = (sgn[:, None] * sgn[None, :])[None, None] / (d[:, None, None, None] * np.conj(d)[None, :, None, None])
+    Ip = -np.sum(wc / denom, axis=(2, 3)).real
+    # Observability: the output sees slot a of mode j with weight b_j; the position
+    # coordinate q_j is recovered from the slots with g = (lam_-, -lam_+) / d.
+    g = np.stack([lam[:, 1] / d, -lam[:, 0] / d], axis=1)  # (s, 2)
+    denom_o = np.conj(lam)[:, None, :, None] + lam[None, :, None, :]
+    Iq = -np.sum(np.conj(g)[:, None, :, None] * g[None, :, None, :] / denom_o, axis=(2, 3)).real
+    P = bb * Ip
+    Q = bb * Iq
+    return 0.5 * (P + P.T), 0.5 * (Q + Q.T)
+
+
+def _psd_factor(A: np.ndarray) -> np.ndarray:
+    """R with R R' = A for a symmetric positive semidefinite A (negative round-off clipped)."""
+    lam, Q = np.linalg.eigh(A)
+    keep = lam > lam.max() * 1e-15
+    return Q[:, keep] * np.sqrt(lam[keep])
+
+
+def balance(K: np.ndarray, B: np.ndarray, tol: float, zeta: float = GRAMIAN_DAMPING):
+    """Second-order position-balanced truncation of ``q'' + D q' + K q = B u``, ``y = B' q``,
+    in coordinates where the mass is the identity (``D`` the modal damping ``zeta``).
+
+    Args:
+        K: (s, s) symmetric positive definite stiffness, 1/s^2.
+        B: (s, m) inputs.
+        tol: keep the states whose Hankel singular value exceeds ``tol`` times the largest.
+
+    Returns:
+        ``(Y, hsv)``: Y (s, r) the leading right balancing vectors (the basis to project on),
+        hsv (min(s, m...),) all position Hankel singular values, descending.
+    """
+    w2, Phi = np.linalg.eigh(0.5 * (K + K.T))
+    if w2[0] <= 0:
+        raise ValueError("balance: the stiffness is not positive definite (a floating segment?)")
+    b = Phi.T @ B
+    P, Q = position_gramians(np.sqrt(w2), b, zeta)
+    R, L = _psd_factor(P), _psd_factor(Q)
+    _U, hsv, Wt = np.linalg.svd(L.T @ R, full_matrices=False)
+    r = int(np.sum(hsv > tol * hsv[0]))
+    T = R @ (Wt[:r].T / np.sqrt(hsv[:r]))
+    return Phi @ T, hsv
+
+
+def _rigid_shapes(points: np.ndarray) -> np.ndarray:
+    """(3k, 6) translations and small rotations (about the centroid) of k points (k, 3), node-major."""
+    c = points - points.mean(axis=0)
+    out = np.zeros((points.shape[0], 3, 6))
+    for a in range(3):
+        out[:, a, a] = 1.0
+    for a in range(3):  # rotation about axis a: e_a x c
+        e = np.zeros(3)
+        e[a] = 1.0
+        out[:, :, 3 + a] = np.cross(e, c)
+    return out.reshape(-1, 6)
+
+
+def _contact_interp(nodes: np.ndarray, weights: np.ndarray):
+    """The candidate points as a dense interpolation: contact node ids (c,) and ``Jn`` (P, c),
+    the point's displacement (per component) from the nodes'. Zero weights are dropped."""
+    used = weights != 0
+    cnodes = np.unique(nodes[used])
+    Jn = np.zeros((nodes.shape[0], cnodes.size))
+    rows = np.repeat(np.arange(nodes.shape[0]), nodes.shape[1]).reshape(nodes.shape)
+    np.add.at(Jn, (rows[used], np.searchsorted(cnodes, nodes[used])), weights[used])
+    return cnodes, Jn
+
+
+def _kron3(A: np.ndarray) -> np.ndarray:
+    """(3m, 3n) node-major ``kron(A, I_3)`` of A (m, n): the same map on every component."""
+    return np.kron(A, np.eye(3))
+
+
+def _node_loads(n_dof: int, rows: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """(n_dof, 3q) nodal loads ``kron(F, I_3)`` on the nodes with local dofs ``3 row + comp``."""
+    out = np.zeros((n_dof, 3 * F.shape[1]))
+    out[_dofs(rows)] = _kron3(F)
+    return out
+
+
+def _load_factor(Jn: np.ndarray) -> np.ndarray:
+    """Factor F (c, q) with ``F F' = Jn'Jn``: white-noise forces at the candidate points load the
+    nodes with covariance ``kron(Jn'Jn, I_3)`` (sampled surface tractions). Null directions
+    dropped."""
+    lam, Q = np.linalg.eigh(Jn.T @ Jn)
+    keep = lam > 1e-12 * lam.max()
+    return Q[:, keep] * np.sqrt(lam[keep])
+
+
+def _lowest_modes(K, M, lu, k: int):
+    """(n, k) lowest eigenvectors of (K, M), by shift-invert Lanczos (dense when small)."""
+    n = K.shape[0]
+    k = min(k, n - 2)
+    if k <= 0:
+        return np.zeros((n, 0))
+    if n <= 3 * k + 20:  # too small for Lanczos
+        _, vec = sla.eigh(K.toarray(), M.toarray(), subset_by_index=(0, k - 1))
+        return vec
+    op = spla.LinearOperator((n, n), matvec=lu.solve, dtype=np.float64)
+    _, vec = spla.eigsh(K, k=k, M=M, sigma=0.0, which="LM", OPinv=op, tol=1e-10)
+    return vec
+
+
+def _greedy_span(T: np.ndarray, Q0: np.ndarray, tol: float) -> np.ndarray:
+    """Orthonormal Q = [Q0, ...] such that every column of T (m, n) is represented to
+    ``|t_j - Q Q't_j| <= tol |t_j|``, adding the worst residual column at each step."""
+    norm = np.linalg.norm(T, axis=0)
+    T = T[:, norm > 0] / norm[norm > 0]
+    Q = Q0
+    R = T - Q @ (Q.T @ T)
+    while Q.shape[1] < T.shape[0]:
+        res = np.linalg.norm(R, axis=0)
+        j = int(np.argmax(res))
+        if res[j] <= tol:
+            break
+        q = R[:, j] - Q @ (Q.T @ R[:, j])
+        q /= np.linalg.norm(q)
+        Q = np.concatenate([Q, q[:, None]], axis=1)
+        R -= np.outer(q, q @ R)
+    return Q
+
+
+def _normal_loads(Jn: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(3c, Q) nodal loads of a unit force along each candidate point's surface normal(s).
+
+    Args:
+        Jn: (P, c) interpolation of the points from the contact nodes.
+        normals: (P, m, 3) normals per point (m = 2: its side's and, at an edge, the other
+            side's); repeated normals add nothing and are dropped.
+    """
+    P, m = normals.shape[:2]
+    L = np.einsum("pa,pjd->adpj", Jn, normals).reshape(3 * Jn.shape[1], P * m)
+    distinct = np.ones((P, m), dtype=bool)
+    for j in range(1, m):
+        distinct[:, j] = np.linalg.norm(normals[:, j] - normals[:, 0], axis=1) > 1e-9
+    return L[:, distinct.ravel()]
+
+
+def interface_shapes(
+    asm: Assembly, seg: Segmentation, K_free, cnodes: np.ndarray, loads: np.ndarray, tol: float
+):
+    """Shapes of the interface nodes, shared by every segment's copy of them.
+
+    The six rigid motions of the interface node set, then interface traces of the full model's
+    static responses to the contact loads, added until each such trace is represented to ``tol``
+    relative error (:func:`_greedy_span`).
+
+    Args:
+        K_free: (n, n) sparse stiffness of the full model at the free dofs, N/mm.
+        cnodes: (c,) global ids of the contact nodes.
+        loads: (3c, Q) contact load cases on their dofs (:func:`_normal_loads`).
+
+    Returns:
+        ``(gamma, Psi)``: interface node ids (k,) and an orthonormal (3k, q) basis of shapes.
+    """
+    gamma = np.unique(np.concatenate([seg.nodes[i][seg.interface_nodes(i)] for i in range(seg.n_segments)]))
+    free_pos = -np.ones(3 * asm.nodes.shape[0], dtype=np.int64)
+    free_pos[asm.free] = np.arange(asm.free.size)
+    rows = free_pos[_dofs(gamma)]
+    unit = _node_loads(asm.free.size, free_pos[3 * cnodes] // 3, np.eye(cnodes.size))
+    lu = spla.splu(sp.csc_matrix(K_free))
+    traces = np.concatenate([lu.solve(unit[:, j : j + 64])[rows] for j in range(0, unit.shape[1], 64)], 1)
+    rigid, _ = np.linalg.qr(_rigid_shapes(asm.nodes[gamma]))
+    return gamma, _greedy_span(traces @ loads, rigid, tol)
+
+
+def _static_correction(Kh: np.ndarray, L: np.ndarray, Y: np.ndarray, tol: float) -> np.ndarray:
+    """Vectors to add to the basis Y (s, r) so that the static compliance ``l'K^-1 l`` of every
+    load column l of L (s, n) is kept to ``tol`` relative error (the Galerkin compliance only
+    falls short of it). Greedy: the residual static response of the worst load at each step."""
+    KiL = np.linalg.solve(Kh, L)
+    c = np.einsum("sn,sn->n", L, KiL)
+    ok = c > 0
+    KiL, L, c = KiL[:, ok], L[:, ok], c[ok]
+    if Y.shape[1]:
+        G = Y.T @ Kh @ Y
+        Yk = Y @ np.linalg.inv(np.linalg.cholesky(0.5 * (G + G.T))).T  # K-orthonormal
+    else:
+        Yk = Y
+    A = Yk.T @ L  # reduced compliance of load j: |A_j|^2
+    added = []
+    while True:
+        lost = c - np.einsum("rn,rn->n", A, A)
+        j = int(np.argmax(lost / c))
+        if lost[j] <= tol * c[j] or Yk.shape[1] >= Kh.shape[0]:
+            break
+        z = KiL[:, j] - Yk @ A[:, j]
+        z -= Yk @ (Yk.T @ (Kh @ z))  # re-orthogonalise (round-off)
+        z /= np.sqrt(z @ Kh @ z)
+        Yk = np.concatenate([Yk, z[:, None]], axis=1)
+        A = np.concatenate([A, (z @ L)[None]], axis=0)
+        added.append(z)
+    return np.stack(added, axis=1) if added else np.zeros((Kh.shape[0], 0))
+
+
+@dataclass(frozen=True, eq=False)
+class SegmentBasis:
+    """The reduced basis of one segment and how it was obtained.
+
+    Attributes:
+        V: (n_i, r_i) basis on the segment's local dofs, M-orthonormal at the nominal material.
+        n_interface: number of interface shapes (constraint modes) in it.
+        n_balanced: interior states kept by the Hankel singular value tolerance.
+        n_static: static-correction vectors added for the contact compliance.
+        hsv: interior position Hankel singular values, descending (relative to the largest).
+        subspace: dimension of the interior subspace the balancing ran in.
+    """
+
+    V: np.ndarray
+    n_interface: int
+    n_balanced: int
+    n_static: int
+    hsv: np.ndarray
+    subspace: int
+
+
+def segment_basis(
+    blocks,
+    lam0: float,
+    mu0: float,
+    rho0: float,
+    gamma_local: np.ndarray,
+    psi: np.ndarray,
+    contact: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+    tol: float,
+    n_modes: int,
+) -> SegmentBasis:
+    """Balanced Craig-Bampton basis of one segment (see the module docstring).
+
+    Args:
+        blocks: the segment's (K_lam, K_mu, M1) on its local dofs.
+        lam0, mu0, rho0: nominal material (MPa, MPa, t/mm^3).
+        gamma_local: (k,) local indices of the segment's interface nodes.
+        psi: (3k, q) interface shapes on those nodes (node-major).
+        contact: for the contact segment, (local indices (c,) of the contact nodes, their
+            interpolation Jn (P, c) at the candidate points, the contact load cases (3c, Q) of
+            :func:`_normal_loads`); None for the others.
+        tol: relative Hankel singular value and static compliance tolerance.
+        n_modes: lowest interior modes in the balancing subspace.
+    """
+    kl, km, m1 = blocks
+    K = (lam0 * kl + mu0 * km).tocsr()
+    M = (rho0 * m1).tocsr()
+    n = K.shape[0]
+    g = _dofs(gamma_local)
+    inner = np.setdiff1d(np.arange(n), g)
+    inner_pos = -np.ones(n, dtype=np.int64)
+    inner_pos[inner] = np.arange(inner.size)
+    K_II, K_IG = K[inner][:, inner].tocsc(), K[inner][:, g]
+    M_II, M_IG = M[inner][:, inner].tocsc(), M[inner][:, g]
+    lu = spla.splu(K_II)
+    C_I = -lu.solve(np.asarray(K_IG @ psi)) if psi.shape[1] else np.zeros((inner.size, 0))
+    if contact is not None:
+        rows, Jn, cases = contact
+        if np.any(inner_pos[_dofs(rows)] < 0):
+            raise RuntimeError("segment: a contact node lies on the segment interface (raise the margin)")
+        unit = _node_loads(n, rows, np.eye(rows.size))[inner]  # a unit force on each contact dof
+        B = unit @ _kron3(_load_factor(Jn))
+        span = unit
+    else:  # the interface shapes' accelerations load the interior through the mass
+        B = np.asarray(M_II @ C_I + M_IG @ psi)
+        span = B
+    X = lu.solve(span) if span.shape[1] else np.zeros((inner.size, 0))
+    U = _m_orthonormal(np.concatenate([_lowest_modes(K_II, M_II, lu, n_modes), X], axis=1), M_II)
+    Kh = U.T @ (K_II @ U)
+    Kh = 0.5 * (Kh + Kh.T)
+    n_static = 0
+    if B.shape[1] and np.abs(B).max() > 0:
+        Y, hsv = balance(Kh, U.T @ B, tol)
+        n_bal = Y.shape[1]
+        hsv = hsv / hsv[0]
+        if contact is not None:
+            Z = _static_correction(Kh, U.T @ (unit @ cases), Y, tol)
+            Y = np.concatenate([Y, Z], axis=1)
+            n_static = Z.shape[1]
+    else:
+        Y, hsv, n_bal = np.zeros((U.shape[1], 0)), np.zeros(0), 0
+    V = np.zeros((n, psi.shape[1] + Y.shape[1]))
+    V[g, : psi.shape[1]] = psi
+    V[inner, : psi.shape[1]] = C_I
+    V[inner, psi.shape[1] :] = U @ Y
+    return SegmentBasis(_m_orthonormal(V, M), psi.shape[1], n_bal, n_static, hsv, U.shape[1])
+
+
+# --------------------------------------------------------------------------------------------
+# The socket (pure JAX)
+# --------------------------------------------------------------------------------------------
+
+
+class ReducedOperator(eqx.Module):
+    """What one step of a segmented or reduced socket needs for one material and time step.
+
+    Attributes:
+        S_inv: (r, r) inverse of ``S_r = 2 M_r/T + D_r + (T/2) K_r`` (coupling included).
+        Pv, Px: (r, r) ``(2/T) S_inv M_r`` and ``-S_inv K_r``: the free midpoint velocity is
+            ``Pv v + Px x``.
+        k, m: (r, r) ``K_r`` and ``M_r`` (energy).
+        NS: (c, 3, r) ``J_c S_inv`` for the contact nodes (``J_c`` = ``node_rows``).
+        WN: (c, 3, c, 3) ``J_c S_inv J_c'``: the contact nodes' Delassus operator, from which a
+            step's (C, 3, C, 3) block is interpolated without an (r, r) product.
+        dt: scalar time step T, s.
+    """
+
+    S_inv: jax.Array
+    Pv: jax.Array
+    Px: jax.Array
+    k: jax.Array
+    m: jax.Array
+    NS: jax.Array
+    WN: jax.Array
+    dt: jax.Array
+
+    def astype(self, dtype) -> ReducedOperator:
+        return jax.tree_util.tree_map(lambda a: a.astype(dtype), self)
+
+
+class ReducedSocket(eqx.Module):
+    """Segmented (``method = "segmented"``) or segmented and reduced (``"reduced"``) socket.
+
+    The state ``x`` (r,) stacks every segment's coordinates: its nodal dofs (segmented) or its
+    reduced coordinates ``z_i`` with ``x_i = V_i z_i`` (reduced). Implements the interface of
+    :class:`jsnap._socket.FullSocket`. All blocks are parameter-free, so every method is exact
+    and differentiable in the material (E, nu, rho, alpha, beta).
+
+    Attributes:
+        kl, km, m1: (r, r) ``V'K_lam V``, ``V'K_mu V``, ``V'M1 V`` (block diagonal by segment).
+        coupling_rows: (3p, r) ``Dg V``: the gap of each joined pair of copies, per component.
+        coupling: (2,) interface spring stiffness k_c (N/mm) and damping b_c (N s/mm).
+        out_kl, out_km, out_m1: (6, r) base force (N) and moment about the base centroid
+            (N mm) per unit of ``K_lam``, ``K_mu``, ``M1`` action (reduced linear outputs).
+        node_rows: (c, 3, r) displacement of the contact nodes (the interpolating nodes of the
+            candidate points and of their stencils) per unit coordinate.
+        sample_nodes, sample_weights: (P, k) indices into ``node_rows`` and shape functions.
+        stencil_nodes, stencil_weights: (P, 8, k) the same for the normal stencils.
+        recon: (n_free, r) free-dof displacement of the full mesh per unit coordinate (reduced),
+            or None (segmented: ``recon_index`` picks one copy of each free dof).
+        recon_index: (n_free,) coordinate of each free dof (segmented only; else unused).
+        orders: static, coordinates per segment (segment 0 is the contact segment).
+        method: static, ``"segmented"`` or ``"reduced"``.
+    """
+
+    kl: jax.Array
+    km: jax.Array
+    m1: jax.Array
+    coupling_rows: jax.Array
+    coupling: jax.Array
+    out_kl: jax.Array
+    out_km: jax.Array
+    out_m1: jax.Array
+    node_rows: jax.Array
+    sample_nodes: jax.Array
+    sample_weights: jax.Array
+    stencil_nodes: jax.Array
+    stencil_weights: jax.Array
+    recon: jax.Array | None
+    recon_index: jax.Array
+    orders: tuple[int, ...] = eqx.field(static=True)
+    method: str = eqx.field(static=True)
+
+    @property
+    def n_dof(self) -> int:
+        return self.kl.shape[0]
+
+    def _stiffness(self, material: Material):
+        lam, mu = lame(material.E, material.nu)
+        return lam * self.kl + mu * self.km
+
+    def prepare(self, material: Material, dt) -> ReducedOperator:
+        """Reduced operator for ``material`` and ``dt`` (s): one dense Cholesky of (r, r),
+        differentiable with respect to every field of ``material``. The interface coupling is
+        folded into ``S_r``, so its elimination costs nothing per step."""
+        dt = jnp.asarray(dt, jnp.float64)
+        kc, bc = self.coupling[0], self.coupling[1]
+        G = self.coupling_rows.T @ self.coupling_rows
+        K_el = self._stiffness(material)
+        M = material.rho * self.m1
+        K = K_el + kc * G
+        D = material.alpha * M + material.beta * K_el + bc * G
+        S = 2.0 * M / dt + D + 0.5 * dt * K
+        S = 0.5 * (S + S.T)
+        chol = jnp.linalg.cholesky(S)
+        S_inv = jax.scipy.linalg.cho_solve((chol, True), jnp.eye(S.shape[0], dtype=S.dtype))
+        S_inv = 0.5 * (S_inv + S_inv.T)
+        NS = jnp.einsum("cdr,rs->cds", self.node_rows, S_inv)
+        WN = jnp.einsum("cdr,efr->cdef", NS, self.node_rows)
+        return ReducedOperator(S_inv, (2.0 / dt) * S_inv @ M, -S_inv @ K, K, M, NS, WN, dt)
+
+    def free_velocity(self, op: ReducedOperator, x, v):
+        return op.Pv @ v + op.Px @ x
+
+    def _nodes(self, x):
+        return jnp.einsum("cdr,r->cd", self.node_rows, x)
+
+    def sample_disp(self, x):
+        return jnp.einsum("pk,pkd->pd", self.sample_weights, self._nodes(x)[self.sample_nodes])
+
+    def stencil_disp(self, x, idx):
+        xn = self._nodes(x)
+        return jnp.einsum("csk,cskd->csd", self.stencil_weights[idx], xn[self.stencil_nodes[idx]])
+
+    def contact_operator(self, op: ReducedOperator, idx):
+        """``A = J S^-1`` (C, 3, r) and ``W = J S^-1 J'`` (C, 3, C, 3), interpolated from the
+        contact nodes' precomputed ``NS`` and ``WN``: O(C k r + c C k) per step, with no (r, r)
+        product (k interpolating nodes per point, c contact nodes)."""
+        w, nodes = self.sample_weights[idx], self.sample_nodes[idx]
+        A = jnp.einsum("ck,ckdr->cdr", w, op.NS[nodes])
+        half = jnp.einsum("el,adelf->adef", w, op.WN[:, :, nodes, :])  # (c, 3, C, 3)
+        W = jnp.einsum("ck,ckdef->cdef", w, half[nodes])
+        return A, W
+
+    def point_velocity(self, vbar, idx):
+        return jnp.einsum("ck,ckd->cd", self.sample_weights[idx], self._nodes(vbar)[self.sample_nodes[idx]])
+
+    def energy(self, op: ReducedOperator, x, v):
+        """Discrete energy ``1/2 v'M_r v + 1/2 x'K_r x`` (interface springs included), N mm."""
+        return 0.5 * v @ (op.m @ v) + 0.5 * x @ (op.k @ x)
+
+    def base_wrench(self, op: ReducedOperator, material: Material, x, v, v_new, vbar):
+        """Reaction of the fixed base on the socket over the step (force N, moment N mm about
+        the base centroid) at the interval's midpoint, as :class:`FullSocket` does, from the
+        reduced output rows."""
+        dtype = x.dtype
+        lam, mu = lame(material.E, material.nu)
+        ok = (lam * self.out_kl + mu * self.out_km).astype(dtype)
+        om = (material.rho * self.out_m1).astype(dtype)
+        T = op.dt
+        xbar = x + 0.5 * T * vbar
+        w = om @ ((v_new - v) / T + material.alpha * vbar) + ok @ (xbar + material.beta * vbar)
+        return w[:3], w[3:]
+
+    def free_displacement(self, x):
+        """(n_free,) displacement at the free dofs of the full mesh, mm (reconstructed)."""
+        if self.recon is None:
+            return x[self.recon_index]
+        return self.recon @ x
+
+
+# --------------------------------------------------------------------------------------------
+# Building the socket (host)
+# --------------------------------------------------------------------------------------------
+
+# Arrays of a built segmented/reduced socket, in the order of the ReducedSocket fields.
+_ARRAYS = (
+    "kl", "km", "m1", "coupling_rows", "out_kl", "out_km", "out_m1", "node_rows",
+    "sample_nodes", "sample_weights", "stencil_nodes", "stencil_weights", "recon", "recon_index",
+)  # fmt: skip
+
+
+def _wrench_rows(asm: Assembly) -> np.ndarray:
+    """(6, n_fixed) sum of the base reactions (n_fixed,) into force and moment about the base
+    centroid (the same centroid as ``FullSocket.base_offsets``)."""
+    pos = asm.nodes[asm.fixed[0::3] // 3]
+    o = pos - pos.mean(axis=0)
+    n = pos.shape[0]
+    S = np.zeros((6, 3 * n))
+    j = 3 * np.arange(n)
+    for a in range(3):
+        S[a, j + a] = 1.0
+    S[3, j + 2], S[3, j + 1] = o[:, 1], -o[:, 2]
+    S[4, j + 0], S[4, j + 2] = o[:, 2], -o[:, 0]
+    S[5, j + 1], S[5, j + 0] = o[:, 0], -o[:, 1]
+    return S
+
+
+def _contact_maps(asm: Assembly, seg: Segmentation, nodes: np.ndarray, weights: np.ndarray):
+    """Global ids of the contact nodes (c,) and the index of each interpolating node (same shape
+    as ``nodes``, free-node numbering) into them; nodes with weight 0 (clamped) point at 0."""
+    free_nodes = asm.free[0::3] // 3
+    g = free_nodes[nodes]
+    used = weights != 0
+    contact = np.unique(g[used])
+    if not np.all(np.isin(contact, seg.nodes[0])):
+        raise RuntimeError("segment: a contact point interpolates a node outside the contact segment")
+    idx = np.where(used, np.searchsorted(contact, g), 0)
+    return contact, idx
+
+
+def _socket_arrays(asm, seg, blocks, reactions, bases, sample, stencil) -> tuple[dict, tuple[int, ...]]:
+    """The ReducedSocket arrays (float64 numpy) for per-segment bases (None: identity)."""
+    n_seg = seg.n_segments
+    sizes = [3 * len(seg.nodes[i]) for i in range(n_seg)]
+    identity = bases is None
+    Vs = [sp.identity(n, format="csr") for n in sizes] if identity else list(bases)
+    orders = tuple(int(V.shape[1]) for V in Vs)
+    offs = np.concatenate([[0], np.cumsum(orders)])
+    r = int(offs[-1])
+    out = {}
+    for name, b in zip(("kl", "km", "m1"), range(3), strict=True):
+        A = np.zeros((r, r))
+        for i, V in enumerate(Vs):
+            blk = blocks[i][b]
+            A[offs[i] : offs[i + 1], offs[i] : offs[i + 1]] = blk.toarray() if identity else V.T @ (blk @ V)
+        out[name] = 0.5 * (A + A.T)
+
+    def rows(i, local_dofs):  # (len, r) rows of the stacked basis for local dofs of segment i
+        R = np.zeros((len(local_dofs), r))
+        R[:, offs[i] : offs[i + 1]] = Vs[i][local_dofs].toarray() if identity else Vs[i][local_dofs]
+        return R
+
+    P = seg.pairs
+    cr = np.zeros((3 * len(P), r))
+    for a in range(3):
+        cr[a::3] = 0.0
+        for sa in range(n_seg):
+            for sb in range(n_seg):
+                sel = np.flatnonzero((P[:, 0] == sa) & (P[:, 2] == sb))
+                if sel.size:
+                    cr[3 * sel + a] = rows(sa, 3 * P[sel, 1] + a) - rows(sb, 3 * P[sel, 3] + a)
+    out["coupling_rows"] = cr
+    S = _wrench_rows(asm)
+    for name, b in zip(("out_kl", "out_km", "out_m1"), range(3), strict=True):
+        o = np.zeros((6, r))
+        for i, V in enumerate(Vs):
+            R = reactions[i][b]
+            o[:, offs[i] : offs[i + 1]] = S @ (R.toarray() if identity else R @ V)
+        out[name] = o
+    (s_nodes, s_w), (t_nodes, t_w) = sample, stencil
+    contact, _ = _contact_maps(
+        asm, seg, np.concatenate([s_nodes.ravel(), t_nodes.ravel()]), np.concatenate([s_w.ravel(), t_w.ravel()])
+    )
+    local = np.searchsorted(seg.nodes[0], contact)
+    out["node_rows"] = rows(0, _dofs(local)).reshape(len(contact), 3, r)
+    for name, (nodes, w) in (("sample", sample), ("stencil", stencil)):
+        used = w != 0
+        g = (asm.free[0::3] // 3)[nodes]
+        out[f"{name}_nodes"] = np.where(used, np.searchsorted(contact, g), 0).astype(np.int32)
+        out[f"{name}_weights"] = np.where(used, w, 0.0)
+    # Each free dof of the full mesh is read from its copy in the lowest-numbered segment.
+    n_free = asm.free.size
+    seg_of = np.full(asm.nodes.shape[0], -1)
+    loc_of = np.zeros(asm.nodes.shape[0], dtype=np.int64)
+    for i in reversed(range(n_seg)):
+        seg_of[seg.nodes[i]] = i
+        loc_of[seg.nodes[i]] = np.arange(len(seg.nodes[i]))
+    fnode, comp = asm.free // 3, asm.free % 3
+    s_of, l_of = seg_of[fnode], loc_of[fnode]
+    if np.any(s_of < 0):
+        raise RuntimeError("segment: a free node belongs to no segment")
+    out["recon_index"] = (offs[s_of] + 3 * l_of + comp).astype(np.int32)
+    if identity:
+        out["recon"] = None
+    else:
+        recon = np.zeros((n_free, r))
+        for i in range(n_seg):
+            sel = np.flatnonzero(s_of == i)
+            recon[sel] = rows(i, 3 * l_of[sel] + comp[sel])
+        out["recon"] = recon
+    return out, orders
+
+
+def _to_socket(arrays: dict, orders, method: str, kc: float, bc: float) -> ReducedSocket:
+    def j(a):
+        return None if a is None else jnp.asarray(a)
+
+    return ReducedSocket(
+        **{k: j(arrays[k]) for k in _ARRAYS},
+        coupling=jnp.asarray([kc, bc], jnp.float64),
+        orders=tuple(orders),
+        method=method,
+    )
+
+
+def reduce_bases(
+    asm, seg, blocks, material: tuple[float, float, float], sample, normals, tol: float, n_modes: int
+):
+    """Per-segment balanced bases (see the module docstring).
+
+    Args:
+        material: nominal (E MPa, nu, rho t/mm^3) the basis is computed at.
+        sample: (nodes (P, k) free-node indices, weights (P, k)) of the contact candidate points.
+        normals: (P, m, 3) outward normals of the section side(s) each point lies on.
+        tol: ``solver.hsv_tolerance``.
+        n_modes: lowest interior modes per segment in the balancing subspace.
+
+    Returns:
+        ``(bases, info)``: a :class:`SegmentBasis` per segment and a dict of sizes.
+    """
+    E, nu, rho = material
+    lam0, mu0 = lame(E, nu)
+    free = asm.free
+    nodes, weights = sample
+    cnodes, Jn = _contact_interp((free[0::3] // 3)[nodes], weights)
+    cases = _normal_loads(Jn, np.asarray(normals, dtype=np.float64).reshape(Jn.shape[0], -1, 3))
+    K_free = (lam0 * asm.K_lam + mu0 * asm.K_mu)[free][:, free].tocsr()
+    gamma, psi = interface_shapes(asm, seg, K_free, cnodes, cases, tol)
+    psi = psi.reshape(len(gamma), 3, -1)
+    bases = []
+    for i in range(seg.n_segments):
+        gl = seg.interface_nodes(i)
+        psi_i = psi[np.searchsorted(gamma, seg.nodes[i][gl])].reshape(3 * len(gl), -1)
+        U, sv, _ = np.linalg.svd(psi_i, full_matrices=False)
+        psi_i = U[:, sv > 1e-8 * sv[0]]
+        contact = None
+        if i == 0:
+            contact = (np.searchsorted(seg.nodes[0], cnodes), Jn, cases)
+        bases.append(segment_basis(blocks[i], lam0, mu0, rho, gl, psi_i, contact, tol, n_modes))
+    info = dict(
+        interface_nodes=len(gamma),
+        interface_shapes=int(psi.shape[2]),
+        contact_nodes=len(cnodes),
+        contact_load_cases=int(cases.shape[1]),
+    )
+    return bases, info
+
+
+# --------------------------------------------------------------------------------------------
+# Files and cache
+# --------------------------------------------------------------------------------------------
+
+
+def _hash_arrays(h, *arrays):
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}|{a.shape}".encode())
+        h.update(a.tobytes())
+
+
+def cache_key(asm: Assembly, seed_faces, sample, stencil, normals, settings: dict) -> str:
+    """SHA-256 of everything a reduced model depends on: format version, mesh and element,
+    clamped dofs, seed faces, contact points' and stencils' nodes and weights and the points'
+    normals, and the settings
+    (material it was balanced at, tolerance, subspace modes, margin, segments)."""
+    h = hashlib.sha256()
+    h.update(json.dumps(dict(format=FORMAT_NAME, version=FORMAT_VERSION, element=asm.element)).encode())
+    _hash_arrays(h, asm.mesh.points, asm.mesh.cells, asm.fixed, np.sort(np.sort(seed_faces, axis=1), axis=0))
+    _hash_arrays(h, *sample, *stencil, np.asarray(normals, dtype=np.float64))
+    h.update(json.dumps(dict(settings, gramian_damping=GRAMIAN_DAMPING), sort_keys=True).encode())
+    return h.hexdigest()
+
+
+def cache_path(key: str) -> Path:
+    """``cache_dir()/reduced/<key>.npz`` (``$JSNAP_CACHE`` or ``~/.cache/jsnap``)."""
+    return cache_dir() / "reduced" / f"{key[:32]}.npz"
+
+
+def save(arrays: dict, meta: dict, path) -> Path:
+    """Write a reduced model (the ReducedSocket arrays and ``meta``, which must hold ``key`` and
+    ``orders``) to ``path`` (``.npz``), atomically, with format name, version and a checksum."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arrays = {k: np.asarray(v) for k, v in arrays.items() if v is not None}
+    meta_json = json.dumps(meta, sort_keys=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(
+                fh,
+                format=np.asarray(FORMAT_NAME),
+                format_version=np.asarray(FORMAT_VERSION),
+                meta=np.asarray(meta_json),
+                checksum=np.asarray(_checksum(meta_json, arrays)),
+                **arrays,
+            )
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def load(path, *, key: str | None = None) -> tuple[dict, dict]:
+    """Read a reduced model written by :func:`save`, verifying format, version, checksum,
+    array shapes and (if given) the cache key.
+
+    Returns:
+        ``(arrays, meta)``.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ReducedModelFileError: unreadable or truncated, not a jsnap reduced model, another format
+            version, checksum mismatch (corrupt), inconsistent arrays, or built for another scene
+            than ``key``.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such reduced model file")
+
+    def bad(why):
+        return ReducedModelFileError(f"{path}: {why}; not using it (it is rebuilt by jsnap.build)")
+
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except Exception as err:  # zipfile, zlib, OSError, ValueError ... all mean "unreadable"
+        raise bad(f"unreadable or corrupt file ({type(err).__name__}: {err})") from None
+    if "format" not in data or str(data["format"]) != FORMAT_NAME:
+        raise bad(f"not a jsnap reduced model (no 'format' = {FORMAT_NAME!r})")
+    version = int(data.get("format_version", -1))
+    if version != FORMAT_VERSION:
+        raise bad(f"format version {version}, this jsnap reads version {FORMAT_VERSION}")
+    try:
+        meta_json = str(data.pop("meta"))
+        checksum = str(data.pop("checksum"))
+        meta = json.loads(meta_json)
+        orders = tuple(int(o) for o in meta["orders"])
+    except (KeyError, ValueError, TypeError) as err:
+        raise bad(f"corrupt metadata ({type(err).__name__}: {err})") from None
+    for k in ("format", "format_version"):
+        data.pop(k)
+    if _checksum(meta_json, data) != checksum:
+        raise bad("checksum mismatch: the file is corrupt")
+    if key is not None and meta.get("key") != key:
+        raise bad(f"built for another scene (key {str(meta.get('key'))[:12]}…, expected {key[:12]}…)")
+    missing = [k for k in _ARRAYS if k not in data and k != "recon"]
+    r = sum(orders)
+    square = ("kl", "km", "m1", "coupling_rows", "node_rows", "recon")
+    if missing or any(data[k].shape[-1] != r for k in square if k in data):
+        raise bad(f"arrays missing or not of order {r} ({', '.join(missing) or 'shapes'})")
+    return data, meta
+
+
+def _settings(scene) -> dict:
+    s, m = scene["solver"], scene["material"]
+    return dict(
+        youngs_modulus=m["youngs_modulus"],
+        poissons_ratio=m["poissons_ratio"],
+        density=m["density"],
+        hsv_tolerance=s["hsv_tolerance"],
+        subspace_modes=s["subspace_modes"],
+        segment_margin=s["segment_margin"],
+        segments=s["segments"],
+    )
+
+
+def load_or_build(
+    asm: Assembly, seed_faces, sample, stencil, normals, scene, *, progress: bool = False, rebuild=False
+):
+    """The reduced model's arrays for a scene, from the cache or built (and cached).
+
+    A cached file that is corrupt or was built for something else is never used: it is
+    reported with a warning and rebuilt.
+
+    Returns:
+        ``(arrays, meta)``; meta holds ``orders``, ``key``, ``path``, ``cached``, ``seconds``
+        (build time), the per-segment reduction details and the Hankel singular values.
+    """
+    settings = _settings(scene)
+    key = cache_key(asm, seed_faces, sample, stencil, normals, settings)
+    path = cache_path(key)
+    if path.is_file() and not rebuild:
+        try:
+            arrays, meta = load(path, key=key)
+            arrays.setdefault("recon", None)
+            return arrays, dict(meta, path=str(path), cached=True)
+        except ReducedModelFileError as err:
+            warnings.warn(f"{err}; rebuilding", stacklevel=2)
+    say = print if progress else (lambda *a, **k: None)
+    t0 = time.perf_counter()
+    seg = segment(asm, seed_faces, settings["segment_margin"], settings["segments"])
+    blocks, reactions = zip(*(segment_blocks(asm, seg, i) for i in range(seg.n_segments)), strict=True)
+    material = (settings["youngs_modulus"], settings["poissons_ratio"], settings["density"])
+    bases, info = reduce_bases(
+        asm, seg, blocks, material, sample, normals, settings["hsv_tolerance"], settings["subspace_modes"]
+    )
+    arrays, orders = _socket_arrays(asm, seg, blocks, reactions, [b.V for b in bases], sample, stencil)
+    seconds = time.perf_counter() - t0
+    meta = dict(
+        key=key,
+        orders=list(orders),
+        seconds=seconds,
+        settings=settings,
+        full_dof=int(asm.free.size),
+        segment_dof=[3 * len(n) for n in seg.nodes],
+        segment_elements=np.bincount(seg.element_segment).tolist(),
+        interface_pairs=len(seg.pairs),
+        segments=[
+            dict(
+                order=int(b.V.shape[1]),
+                interface=b.n_interface,
+                balanced=b.n_balanced,
+                static=b.n_static,
+                subspace=b.subspace,
+                hsv=[float(x) for x in b.hsv],
+            )
+            for b in bases
+        ],
+        **info,
+    )
+    say(f"jsnap: reduced {asm.free.size} dof to {' + '.join(map(str, orders))} in {seconds:.1f} s")
+    save(arrays, meta, path)
+    return arrays, dict(meta, path=str(path), cached=False)
+
+
+def build_socket(asm: Assembly, seed_faces, sample, stencil, normals, scene, *, progress: bool = False):
+    """The socket of a segmented or reduced scene (``solver.method``), and a dict describing it.
+
+    Args:
+        asm: the full assembly.
+        seed_faces: (f, 3) vertex ids of the boundary faces of the contact candidate points and
+            of their stencils (``_model.build``).
+        sample: (nodes (P, k) free-node indices, weights (P, k)) of the candidate points.
+        stencil: (nodes (P, 8, k), weights (P, 8, k)) of their normal stencils.
+        normals: (P, 2, 3) outward normals of the section side each point lies on and (at an
+            edge) of the other side: the contact load cases of the static correction.
+        scene: the validated scene (``solver`` keys: method, hsv_tolerance, subspace_modes,
+            segment_margin, segments, interface_stiffness, interface_damping, dt).
+    """
+    s = scene["solver"]
+    sample = tuple(np.asarray(a) for a in sample)
+    stencil = tuple(np.asarray(a) for a in stencil)
+    kc = s["interface_stiffness"]
+    bc = s["interface_damping"] if s["interface_damping"] is not None else 0.5 * kc * s["dt"]
+    if s["method"] == "segmented":
+        seg = segment(asm, seed_faces, s["segment_margin"], s["segments"])
+        blocks, reactions = zip(*(segment_blocks(asm, seg, i) for i in range(seg.n_segments)), strict=True)
+        arrays, orders = _socket_arrays(asm, seg, blocks, reactions, None, sample, stencil)
+        info = dict(orders=list(orders), interface_pairs=len(seg.pairs))
+    elif s["method"] == "reduced":
+        arrays, info = load_or_build(asm, seed_faces, sample, stencil, normals, scene, progress=progress)
+        orders = info["orders"]
+    else:
+        raise ValueError(
+            f"solver.method = {s['method']!r}: build_socket makes 'segmented' or 'reduced' sockets"
+        )
+    return _to_socket(arrays, orders, s["method"], kc, bc), info
