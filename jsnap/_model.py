@@ -137,6 +137,8 @@ class Model(eqx.Module):
     method: str = eqx.field(static=True)
     host: HostData = eqx.field(static=True)
     neural_sdf: NeuralSDF | None = None
+    # contact.gradient: "implicit" (custom_root on the converged solve, _implicit) or "unrolled"
+    contact_gradient: str = eqx.field(static=True, default="implicit")
 
     @property
     def n_dof(self) -> int:
@@ -458,6 +460,7 @@ def build(scene: Scene, *, progress: bool = False) -> Model:
         contact_solver=ct["solver"],
         iterations=ct["iterations"],
         tolerance=ct["tolerance"],
+        contact_gradient=ct["gradient"],
         dtype=s["dtype"],
         method=s["method"],
         host=host,

@@ -96,6 +96,9 @@ _SCHEMA: dict[str, dict[str, _Key]] = {
         "solver": _Key(str, "apgd", choices=("apgd", "pgs"), doc="cone-complementarity solver"),
         "iterations": _Key(int, 500, _positive, doc="maximum solver iterations per step"),
         "tolerance": _Key(float, 1e-6, _positive, doc="normalised KKT residual to stop at"),
+        "gradient": _Key(
+            str, "implicit", choices=("implicit", "unrolled"), doc="how jax.grad goes through the solve"
+        ),
     },
     "plug": {
         "fillet": _Key(float, 0.1, _nonneg, doc="edge radius, mm"),

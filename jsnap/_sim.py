@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jsnap._contact import solve_apgd, solve_pgs
+from jsnap._implicit import implicit_solver
 from jsnap._model import Model, Params
 from jsnap._neural_sdf import neural_sdf_and_normal
 from jsnap._sdf import mesh_sdf_and_normal, rounded_box_sdf, rounded_box_sdf_and_normal
@@ -279,6 +280,8 @@ def _contact_problem(model: Model, prepared: Prepared, state: State, vbar_free, 
 
 def _solve(model: Model, prob: ContactProblem):
     solve = solve_apgd if model.contact_solver == "apgd" else solve_pgs
+    if model.contact_gradient == "implicit":  # derivatives of the solution, not the iterations
+        solve = implicit_solver(solve)
     sol = solve(
         prob.W,
         prob.q,
@@ -401,6 +404,9 @@ def _cast(tree, dtype):
 
 @eqx.filter_jit
 def _scan(model, prepared, state, controls, keep_x):
+    # Checkpointed: reverse mode keeps only each step's state and recomputes the step (its
+    # contact problems) on the way back (docs/differentiation.md); forward runs are unaffected.
+    @jax.checkpoint
     def body(s, c):
         s, out = step(model, prepared, s, c)
         return s, (out, s.x if keep_x else None)

@@ -1,0 +1,103 @@
+"""Implicit differentiation of the contact solve (the cone problem's solution as a function).
+
+The contact solvers (``_contact.solve_apgd`` / ``solve_pgs``) are bounded scans of hundreds of
+projected-gradient iterations. Differentiating them unrolled stores every iterate and gives the
+derivative of the *iteration*, not of the solution. Here the solution ``gamma*`` of
+
+    min ½ γᵀWγ + γᵀq   s.t.  γ_i ∈ F_i(mu_i)  (active),  γ_i = 0  (inactive)
+
+is differentiated through its fixed-point (natural-map) condition, which holds for any step
+``η > 0`` exactly at a KKT point:
+
+    G(γ; W, q, mu) = γ − Π_F(γ − η (W γ + q); mu) = 0.
+
+By the implicit function theorem, ``dγ* = −(∂G/∂γ)⁻¹ ∂G/∂θ dθ`` with
+``∂G/∂γ = I − P (I − η W)`` and ``P`` the Jacobian of the cone projection at ``γ* − η u*``
+(block diagonal, 3×3 per contact: ``I`` for a sticking contact, ``0`` for a separating one, a
+rank-2 map for a sliding one). This is ``jax.lax.custom_root``: forward and reverse mode, the
+solver itself is never differentiated, and the warm start gets no derivative (the solution of
+the convex problem does not depend on it). The tangent system is 3C × 3C (C = buffer slots):
+formed densely and solved by LU.
+
+Where the active set is degenerate (a contact exactly at the stick/slip or touch/separate
+boundary) the solution is not differentiable; the derivative returned is that of the active set
+classified at ``γ* − η u*``, a one-sided derivative. Where the sticking block of ``W`` is
+singular (more contacts than the socket's interpolation can tell apart) the forces are not
+unique; a tiny relative Tikhonov term (``_RIDGE`` × ‖W‖) makes the tangent system solvable and
+selects the smallest-norm sensitivity there.
+
+Units as in ``_contact``: forces N, velocities mm/s, W mm/(N s).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from jsnap._contact import ContactSolution, _norm_estimate, _prepare, project_cone
+
+__all__ = ["implicit_solver"]
+
+# Relative ridge on the tangent system of sticking contacts (units of η W, which is ≤ 1): far
+# below the eigenvalues that matter (the soft force-distribution modes of a line contact reach
+# 1e-6 of ‖W‖, docs/contact.md), far above the round-off of a singular block.
+_RIDGE = 1e-12
+
+
+def implicit_solver(solve):
+    """Wrap a contact solver so that its solution is differentiated implicitly.
+
+    Args:
+        solve: ``solve_apgd`` or ``solve_pgs`` (same signature as returned function).
+
+    Returns:
+        ``solve_implicit(W, q, mu, mask, *, max_iters, tol, gamma0=None) -> ContactSolution``:
+        the same forward result; derivatives of ``gamma`` with respect to ``W`` (3C, 3C),
+        ``q`` (3C,) and ``mu`` (C,) by the implicit function theorem, none with respect to
+        ``gamma0``; ``iterations``, ``residual`` and ``converged`` carry no derivative.
+    """
+
+    def solve_implicit(W, q, mu, mask, *, max_iters, tol, gamma0=None):
+        W, q, mu, mask = (jnp.asarray(a) for a in (W, q, mu, mask))
+        dtype = jnp.result_type(W.dtype, q.dtype)
+        c = mu.shape[0]
+        g0 = jnp.zeros((c, 3), dtype) if gamma0 is None else jnp.asarray(gamma0, dtype)
+        # The step of the fixed-point map only scales the tangent system; no derivative.
+        eta = jax.lax.stop_gradient(1.0 / _norm_estimate(_prepare(W, q, mu, mask)[0]))
+
+        def G(g):
+            Wm, qm, mu_, _, m3 = _prepare(W, q, mu, mask)
+            flat = g.reshape(-1) * m3
+            z = flat - eta * (Wm @ flat + qm)
+            return g - (project_cone(z.reshape(c, 3), mu_).reshape(-1) * m3).reshape(c, 3)
+
+        def run(_, guess):
+            sol = solve(
+                jax.lax.stop_gradient(W),
+                jax.lax.stop_gradient(q),
+                jax.lax.stop_gradient(mu),
+                mask,
+                max_iters=max_iters,
+                tol=tol,
+                gamma0=guess,
+            )
+            # (custom_root's JVP gives integer/bool aux outputs integer tangents, which JAX then
+            # rejects: pass them as floats.)
+            return sol.gamma, (sol.iterations.astype(dtype), sol.residual, sol.converged.astype(dtype))
+
+        def tangent_solve(g_lin, y):
+            n = 3 * c
+            cols = jax.vmap(lambda e: g_lin(e.reshape(c, 3)).reshape(-1))(jnp.eye(n, dtype=dtype))
+            A = cols.T  # A[:, i] = g_lin(e_i)
+            return jnp.linalg.solve(A + _RIDGE * jnp.eye(n, dtype=dtype), y.reshape(-1)).reshape(c, 3)
+
+        gamma, (it, res, conv) = jax.lax.custom_root(G, jax.lax.stop_gradient(g0), run, tangent_solve, has_aux=True)
+        return ContactSolution(
+            gamma=gamma,
+            iterations=jax.lax.stop_gradient(it).astype(jnp.int32),
+            residual=jax.lax.stop_gradient(res),
+            converged=jax.lax.stop_gradient(conv) > 0,
+        )
+
+    solve_implicit.__name__ = f"implicit_{getattr(solve, '__name__', 'solve')}"
+    return solve_implicit
