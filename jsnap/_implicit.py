@@ -91,7 +91,8 @@ def implicit_solver(solve):
             A = cols.T  # A[:, i] = g_lin(e_i)
             return jnp.linalg.solve(A + _RIDGE * jnp.eye(n, dtype=dtype), y.reshape(-1)).reshape(c, 3)
 
-        gamma, (it, res, conv) = jax.lax.custom_root(G, jax.lax.stop_gradient(g0), run, tangent_solve, has_aux=True)
+        guess = jax.lax.stop_gradient(g0)
+        gamma, (it, res, conv) = jax.lax.custom_root(G, guess, run, tangent_solve, has_aux=True)
         return ContactSolution(
             gamma=gamma,
             iterations=jax.lax.stop_gradient(it).astype(jnp.int32),
