@@ -57,7 +57,25 @@ def _plot(res, out: Path, guide: float, title: str) -> Path:
         a.set_xlabel(xl)
         a.set_ylabel("force (N)")
         a.grid(alpha=0.3)
-    ax[0].legend(fontsize=8)
+    F = np.asarray(res.insertion_force)
+    k, j = int(F.argmax()), int(F.argmin())
+    marks = [(k, f"peak {F[k]:.2f} N at {travel[k]:.2f} mm", (8, 10), "left")]
+    if F[j] < -0.05 * F[k] and j > k:
+        marks.append((j, f"snap: hook pulls\nthe plug in, {F[j]:.2f} N", (10, 0), "left"))
+    for i, text, offset, ha in marks:
+        ax[0].annotate(
+            text,
+            (travel[i], F[i]),
+            xytext=offset,
+            textcoords="offset points",
+            fontsize=8,
+            ha=ha,
+            va="center",
+            arrowprops=dict(arrowstyle="-", lw=0.6),
+        )
+    ax[0].axvspan(0, travel[k], color="C0", alpha=0.04, lw=0)
+    ax[0].text(0.5 * travel[k], 0.97, "ramp", transform=ax[0].get_xaxis_transform(), ha="center", fontsize=8)
+    ax[0].legend(fontsize=8, loc="lower left")
     fig.suptitle(title)
     fig.tight_layout()
     path = out / "forces.png"
