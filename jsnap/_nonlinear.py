@@ -163,11 +163,13 @@ def strain_energy(model: SVKModel, mat: Material, u) -> jax.Array:
     return strain_energy_nodal(model, mat, _nodal(model, u))
 
 
+@jax.jit
 def internal_force(model: SVKModel, mat: Material, u) -> jax.Array:
     """Internal force ``grad W(u)`` (nf,) in N; equals ``K u`` to first order in u."""
     return jax.grad(strain_energy, argnums=2)(model, mat, u)
 
 
+@jax.jit
 def tangent(model: SVKModel, mat: Material, u) -> jax.Array:
     """Dense tangent stiffness ``d grad W / du`` (nf, nf) in N/mm at u (nf,) mm.
 
