@@ -1,0 +1,352 @@
+"""Segmentation and passive balanced reduction (jsnap/_reduce.py, docs/reduction.md).
+
+Coarse P2 meshes (2.0 mm, 780 free dofs) and a light contact configuration keep these fast; each
+model is built once per module and reduced models are cached in a temporary directory.
+"""
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.linalg as sla
+import scipy.sparse.linalg as spla
+
+import jsnap
+from jsnap import _reduce as R
+from jsnap._fem import lame
+from jsnap._scene import SceneError
+
+SMALL = {
+    "solver.mesh_size": 2.0,
+    "solver.dtype": "float64",
+    "motion.speed": 20.0,
+    "contact.capacity": 16,
+    "contact.width_spacing": 2.0,
+    "contact.iterations": 200,
+}
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    with pytest.MonkeyPatch.context() as mp:
+        path = tmp_path_factory.mktemp("jsnap_cache")
+        mp.setenv("JSNAP_CACHE", str(path))
+        yield path
+
+
+@pytest.fixture(scope="module")
+def models(cache):
+    """Full, segmented and reduced models of the same small scene."""
+    scene = jsnap.load_scene().replace(SMALL)
+    return {m: jsnap.build(scene.replace({"solver.method": m})) for m in ("full", "segmented", "reduced")}
+
+
+def _full_compliance(full, points):
+    """(3p, 3p) static compliance J K^-1 J' of the full model at candidate points, mm/N."""
+    asm = full.host.assembly
+    p = full.params
+    lam, mu = lame(float(p.E), float(p.nu))
+    f = asm.free
+    K = (lam * asm.K_lam + mu * asm.K_mu)[f][:, f].tocsc()
+    s = full.socket
+    J = np.zeros((3 * len(points), f.size))
+    nodes, w = np.asarray(s.sample_nodes)[points], np.asarray(s.sample_weights)[points]
+    for i in range(len(points)):
+        for k in range(nodes.shape[1]):
+            for a in range(3):
+                J[3 * i + a, 3 * nodes[i, k] + a] += w[i, k]
+    return J @ spla.splu(K).solve(J.T)
+
+
+def _socket_compliance(model, points, kc=None):
+    """The same for a segmented or reduced socket (interface springs included)."""
+    s = model.socket
+    p = model.params
+    lam, mu = lame(float(p.E), float(p.nu))
+    kc = float(s.coupling[0]) if kc is None else kc
+    cr = np.asarray(s.coupling_rows)
+    K = lam * np.asarray(s.kl) + mu * np.asarray(s.km) + kc * cr.T @ cr
+    rows = np.einsum(
+        "pk,pkdr->pdr",
+        np.asarray(s.sample_weights)[points],
+        np.asarray(s.node_rows)[np.asarray(s.sample_nodes)[points]],
+    ).reshape(3 * len(points), -1)
+    return rows @ sla.solve(K, rows.T, assume_a="pos")
+
+
+def _normals(model, points):
+    """(p, 3) outward normals of the candidate points' own side (from the rest stencil)."""
+    s = np.asarray(model.sample_stencil)[points]
+    n = np.cross(s[:, 3] - s[:, 2], s[:, 1] - s[:, 0])
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def _normal_compliance(C, normals):
+    p = len(normals)
+    return np.einsum("pd,pdqe,qe->pq", normals, C.reshape(p, 3, p, 3), normals).diagonal()
+
+
+def _seeds(model):
+    """Boundary faces of the candidate points (as build finds them)."""
+    asm = model.host.assembly
+    s = model.socket
+    nodes = (asm.free[0::3] // 3)[np.asarray(s.sample_nodes)]
+    contact = np.unique(nodes[np.asarray(s.sample_weights) != 0])
+    faces = asm.mesh.boundary_faces()
+    return faces[np.isin(faces, contact).all(axis=1)]
+
+
+@pytest.mark.parametrize("n_rest", [1, 2])
+def test_segments_partition_the_mesh_and_sum_to_the_full_blocks(models, n_rest):
+    full = models["full"]
+    asm = full.host.assembly
+    seeds = _seeds(full)
+    seg = R.segment(asm, seeds, 1.0, n_rest)
+    assert seg.n_segments == n_rest + 1
+    assert set(np.unique(seg.element_segment)) == set(range(n_rest + 1))
+    # Every element touching a seed face is in the contact segment: its nodes are interior.
+    assert np.all(seg.element_segment[np.isin(asm.mesh.cells, seeds).any(axis=1)] == 0)
+    free_pos = -np.ones(asm.n_dof, dtype=int)
+    free_pos[asm.free] = np.arange(asm.free.size)
+    total = 0
+    for i in range(seg.n_segments):
+        (kl, _km, _m1), (rl, _, _) = R.segment_blocks(asm, seg, i)
+        dofs = free_pos[(3 * seg.nodes[i][:, None] + np.arange(3)).ravel()]
+        assert np.all(dofs >= 0)  # clamped nodes are not copied
+        P = np.zeros((asm.free.size, dofs.size))
+        P[dofs, np.arange(dofs.size)] = 1.0
+        total = total + P @ kl.toarray() @ P.T
+        assert (rl.nnz > 0) == (i == n_rest)  # the base is in the segment farthest from contact
+    K = asm.K_lam[asm.free][:, asm.free].toarray()
+    assert np.abs(total - K).max() < 1e-12 * np.abs(K).max()
+    for sa, la, sb, lb in seg.pairs:  # springs join copies of one node
+        assert seg.nodes[sa][la] == seg.nodes[sb][lb] and sa != sb
+    shared = np.unique(np.concatenate(seg.nodes), return_counts=True)[1]
+    assert len(seg.pairs) == np.sum(shared - 1)
+
+
+def test_position_gramians_solve_the_lyapunov_equations():
+    rng = np.random.default_rng(0)
+    s, m, zeta = 6, 2, 0.05
+    w, b = np.sort(rng.uniform(1.0, 10.0, s)), rng.normal(size=(s, m))
+    A = np.block([[np.zeros((s, s)), np.eye(s)], [-np.diag(w**2), -2 * zeta * np.diag(w)]])
+    B = np.vstack([np.zeros((s, m)), b])
+    C = np.hstack([b.T, np.zeros((m, s))])
+    P = sla.solve_continuous_lyapunov(A, -B @ B.T)[:s, :s]
+    Q = sla.solve_continuous_lyapunov(A.T, -C.T @ C)[:s, :s]
+    Pp, Qp = R.position_gramians(w, b, zeta)
+    assert np.abs(Pp - P).max() < 1e-12 * np.abs(P).max()
+    assert np.abs(Qp - Q).max() < 1e-12 * np.abs(Q).max()
+    # One mode: sigma = |b|^2 sqrt(1 + 4 zeta^2) / (4 zeta w^2), its static compliance / 4 zeta.
+    _, hsv = R.balance(np.diag(w**2), np.eye(s)[:, :1], 1e-3, zeta)
+    assert hsv[0] == pytest.approx(np.sqrt(1 + 4 * zeta**2) / (4 * zeta * w[0] ** 2), rel=1e-9)
+
+
+def test_reduced_energy_conserved_without_damping_or_input(models):
+    """D = 0, b_c = 0, no contact: PMI on the reduced model conserves the energy to round-off
+    (the interface springs are 1e6 N/mm, ~1e4 times the arm's stiffness)."""
+    red = models["reduced"]
+    s = eqx.tree_at(lambda s: s.coupling, red.socket, red.socket.coupling.at[1].set(0.0))
+    op = s.prepare(red.params.material, red.dt)
+    J = jnp.einsum("k,kdr->dr", s.sample_weights[0], s.node_rows[s.sample_nodes[0]])
+    K = op.K_el + op.kc * s.coupling_rows.T @ s.coupling_rows
+    x0 = jnp.linalg.solve(K, J.T @ jnp.array([1.0, 0.0, 0.0]))  # released from a static deflection
+
+    def body(c, _):
+        x, v = c
+        vbar = s.free_velocity(op, x, v)
+        x, v = x + op.dt * vbar, 2 * vbar - v
+        return (x, v), s.energy(op, x, v)
+
+    _, e = jax.jit(lambda x: jax.lax.scan(body, (x, 0 * x), None, length=5_000))(x0)
+    e0 = s.energy(op, x0, 0 * x0)
+    assert float(jnp.max(jnp.abs(e - e0)) / e0) < 1e-8
+
+
+def test_reduced_damping_only_removes_energy(models):
+    red = models["reduced"]
+    s = red.socket
+    op = s.prepare(red.params.replace(alpha=30.0, beta=2e-6).material, red.dt)
+    J = jnp.einsum("k,kdr->dr", s.sample_weights[0], s.node_rows[s.sample_nodes[0]])
+    x0 = jnp.linalg.solve(op.K_el + op.kc * s.coupling_rows.T @ s.coupling_rows, J.T @ jnp.ones(3))
+
+    def body(c, _):
+        x, v = c
+        vbar = s.free_velocity(op, x, v)
+        x, v = x + op.dt * vbar, 2 * vbar - v
+        return (x, v), s.energy(op, x, v)
+
+    _, e = jax.lax.scan(body, (x0, 0 * x0), None, length=500)
+    e = np.concatenate([[float(s.energy(op, x0, 0 * x0))], np.asarray(e)])
+    assert np.max(np.diff(e)) <= 1e-12 * e[0]
+    assert e[-1] < 0.5 * e[0]
+
+
+def test_static_normal_compliance_at_the_contact_points(models):
+    """The reduced model keeps the normal compliance at every candidate point to the tolerance
+    (1e-2 by default, plus the interface springs' 1/k_c); the segmented one to ~1/k_c."""
+    full = models["full"]
+    pts = np.arange(full.n_samples)
+    n = _normals(full, pts)
+    c_full = _normal_compliance(_full_compliance(full, pts), n)
+    tol = full.host.scene["solver"]["hsv_tolerance"]
+    c = {m: _normal_compliance(_socket_compliance(models[m], pts), n) for m in ("segmented", "reduced")}
+    assert np.max(np.abs(c["segmented"] / c_full - 1)) < 1e-3
+    assert np.max(np.abs(c["reduced"] / c_full - 1)) < 1.5 * tol
+    # The reduced model is a Galerkin projection of the segmented one: never softer.
+    assert np.all(c["reduced"] <= c["segmented"] * (1 + 1e-9))
+
+
+def test_segmented_tends_to_the_full_model_as_the_coupling_stiffens(models):
+    full, seg = models["full"], models["segmented"]
+    pts = np.arange(0, full.n_samples, 7)
+    C0 = _full_compliance(full, pts)
+    errs = [
+        np.linalg.norm(_socket_compliance(seg, pts, kc) - C0) / np.linalg.norm(C0) for kc in (1e2, 1e4, 1e6)
+    ]
+    assert errs[0] > 1e-2 and errs[2] < 1e-4
+    assert errs[1] < errs[0] / 30 and errs[2] < errs[1] / 30  # ~ 1 / k_c
+
+
+@pytest.fixture(scope="module")
+def rollouts(models):
+    return {m: jsnap.rollout(models[m]) for m in ("full", "reduced")}
+
+
+def test_reduced_insertion_force_follows_the_full_model(models, rollouts):
+    """Up to the snap (a knife edge: a stiffness change of 1e-3 moves it by a step), the reduced
+    insertion force follows the full model's within the tolerance; the peak within 2%."""
+    F0 = np.asarray(rollouts["full"].insertion_force)
+    F = np.asarray(rollouts["reduced"].insertion_force)
+    ramp = slice(0, int(np.argmax(F0)) - 5)
+    assert np.abs(F[ramp] - F0[ramp]).max() < 1e-2 * F0.max()
+    assert F.max() == pytest.approx(F0.max(), rel=2e-2)
+    assert models["reduced"].n_dof < models["full"].n_dof / 4
+
+
+def test_reduced_rollout_is_passive_and_its_base_wrench_balances_contact(rollouts):
+    res = rollouts["reduced"]
+    E = np.asarray(res.energy)
+    W = np.cumsum(np.asarray(res.work))
+    assert E.max() > 0.3  # the hook really was bent (N mm)
+    assert np.all(E <= W + 1e-6 * E.max())  # the socket never holds more than the plug put in
+    contact = np.asarray(res.contact_force).sum(axis=1)
+    base = np.asarray(res.base_force)
+    assert np.abs(base + contact).max() < 2e-2 * np.abs(contact).max()
+
+
+def test_free_displacement_reconstructs_the_static_deflection(models):
+    """A unit normal force at a hook point: the reduced model's reconstructed displacement field
+    matches the full model's static one."""
+    full, red = models["full"], models["reduced"]
+    p = int(np.argmax(np.asarray(full.sample_rest)[:, 2]))  # the hook's top
+    n = _normals(full, [p])[0]
+    asm = full.host.assembly
+    lam, mu = lame(float(full.params.E), float(full.params.nu))
+    f = asm.free
+    K = (lam * asm.K_lam + mu * asm.K_mu)[f][:, f].tocsc()
+    s = full.socket
+    load = np.zeros(f.size)
+    for k in range(s.sample_nodes.shape[1]):
+        load[3 * int(s.sample_nodes[p, k]) + np.arange(3)] += float(s.sample_weights[p, k]) * n
+    u = spla.splu(K).solve(load)
+    r = red.socket
+    Kr = (
+        lam * np.asarray(r.kl)
+        + mu * np.asarray(r.km)
+        + float(r.coupling[0]) * np.asarray(r.coupling_rows.T @ r.coupling_rows)
+    )
+    J = np.einsum("k,kdr->dr", np.asarray(r.sample_weights[p]), np.asarray(r.node_rows[r.sample_nodes[p]]))
+    z = np.linalg.solve(Kr, J.T @ n)
+    u_r = np.asarray(r.free_displacement(jnp.asarray(z)))
+    assert np.linalg.norm(u_r - u) < 0.02 * np.linalg.norm(u)
+
+
+def test_gradient_wrt_youngs_modulus_through_a_reduced_rollout(models):
+    """V is held fixed: E enters only through prepare (lambda, mu times stored blocks), so the
+    gradient of a contact rollout is exact; checked against central differences."""
+    red = dataclasses.replace(models["reduced"], iterations=60)  # a short, cheap rollout
+    controls = red.trajectory()[1:13]  # on the ramp, in contact from the first step
+
+    @jax.jit
+    @jax.value_and_grad
+    def loss(E):
+        return jnp.mean(jsnap.rollout(red, red.params.replace(E=E), controls=controls).insertion_force)
+
+    E0, h = 2200.0, 2.2
+    value, g = loss(jnp.asarray(E0))
+    fd = (float(loss(jnp.asarray(E0 + h))[0]) - float(loss(jnp.asarray(E0 - h))[0])) / (2 * h)
+    assert float(value) > 0.1 and float(g) > 0  # in contact; a stiffer hook resists more
+    assert float(g) == pytest.approx(fd, rel=1e-4)
+
+
+def test_reduced_model_is_cached_and_a_corrupt_file_is_rebuilt(models, cache):
+    red = models["reduced"]
+    info = red.host.reduction
+    path = info["path"]
+    scene = red.host.scene
+    again = jsnap.build(scene)
+    assert again.host.reduction["cached"] and again.host.reduction["path"] == path
+    assert np.array_equal(np.asarray(again.socket.kl), np.asarray(red.socket.kl))
+    _arrays, meta = R.load(path, key=info["key"])
+    assert meta["orders"] == list(red.socket.orders)
+    # Corrupt the file: it is reported and rebuilt, never used.
+    raw = bytearray(open(path, "rb").read())
+    raw[len(raw) // 2 : len(raw) // 2 + 64] = b"\0" * 64
+    open(path, "wb").write(bytes(raw))
+    with pytest.raises(R.ReducedModelFileError, match=r"corrupt|unreadable|checksum"):
+        R.load(path)
+    with pytest.warns(UserWarning, match="rebuilding"):
+        rebuilt = jsnap.build(scene)
+    assert not rebuilt.host.reduction["cached"]
+    assert np.allclose(np.asarray(rebuilt.socket.kl), np.asarray(red.socket.kl))
+    R.load(path, key=info["key"])  # valid again
+
+
+def test_reduced_file_checks(models, tmp_path, monkeypatch):
+    info = models["reduced"].host.reduction
+    arrays, meta = R.load(info["path"])
+    good = R.save(arrays, meta, tmp_path / "m.npz")
+    with pytest.raises(R.ReducedModelFileError, match="built for another scene"):
+        R.load(good, key="0" * 64)
+    tampered = dict(arrays, kl=arrays["kl"] * 1.01)
+    np.savez(tmp_path / "t.npz", **{k: v for k, v in np.load(good).items() if k not in tampered}, **tampered)
+    with pytest.raises(R.ReducedModelFileError, match="checksum mismatch"):
+        R.load(tmp_path / "t.npz")
+    monkeypatch.setattr(R, "FORMAT_VERSION", R.FORMAT_VERSION + 1)
+    with pytest.raises(R.ReducedModelFileError, match="format version"):
+        R.load(good)
+    (tmp_path / "x.npz").write_bytes(b"not a zip file")
+    with pytest.raises(R.ReducedModelFileError, match="unreadable"):
+        R.load(tmp_path / "x.npz")
+    with pytest.raises(FileNotFoundError):
+        R.load(tmp_path / "missing.npz")
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [
+        ({"solver.hsv_tolerance": 0.0}, r"solver\.hsv_tolerance = 0\.0: must be in \(0, 1\)"),
+        ({"solver.hsv_tolerance": 1.5}, r"solver\.hsv_tolerance = 1\.5"),
+        ({"solver.subspace_modes": 0}, r"solver\.subspace_modes = 0: must be > 0"),
+        ({"solver.segments": 0}, r"solver\.segments = 0"),
+        ({"solver.segment_margin": -1.0}, r"solver\.segment_margin = -1\.0: must be >= 0"),
+        ({"solver.interface_stiffness": 0.0}, r"solver\.interface_stiffness = 0\.0: must be > 0"),
+        ({"solver.interface_damping": -1.0}, r"solver\.interface_damping = -1\.0: must be >= 0"),
+        ({"solver.segments": 1.5}, r"solver\.segments = 1\.5: must be an integer"),
+    ],
+)
+def test_bad_reduction_keys_name_the_key(change, match):
+    with pytest.raises(SceneError, match=match):
+        jsnap.load_scene().replace(change)
+
+
+def test_a_margin_that_swallows_the_socket_is_an_error(cache):
+    scene = jsnap.load_scene().replace({**SMALL, "solver.method": "segmented", "solver.segment_margin": 50.0})
+    with pytest.raises(
+        ValueError, match=r"solver\.segment_margin = 50\.0: the contact segment holds the whole"
+    ):
+        jsnap.build(scene)
