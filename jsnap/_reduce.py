@@ -392,6 +392,14 @@ def _load_factor(Jn: np.ndarray) -> np.ndarray:
     return Q[:, keep] * np.sqrt(lam[keep])
 
 
+def _factor(K):
+    """Sparse LU of a symmetric positive definite matrix, with a symmetric fill-reducing ordering
+    and no pivoting (several times less fill and faster solves than the default for FEM)."""
+    return spla.splu(
+        sp.csc_matrix(K), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True)
+    )
+
+
 def _lowest_modes(K, M, lu, k: int):
     """(n, k) lowest eigenvectors of (K, M), by shift-invert Lanczos (dense when small)."""
     n = K.shape[0]
@@ -486,15 +494,18 @@ def interface_shapes(asm: Assembly, seg: Segmentation, K_free, cnodes, cases, to
     free_pos[asm.free] = np.arange(asm.free.size)
     rows = free_pos[_dofs(gamma)]
     n = asm.free.size
-    lu = spla.splu(sp.csc_matrix(K_free))
-    loads = np.concatenate(
-        [_node_loads(n, free_pos[3 * cnodes] // 3, np.eye(cnodes.size)) @ cases, np.eye(n)[:, rows]], axis=1
+    lu = _factor(K_free)
+    # Unit forces on the contact and interface dofs (fewer than the load cases).
+    c3 = 3 * cnodes.size
+    unit = np.concatenate(
+        [_node_loads(n, free_pos[3 * cnodes] // 3, np.eye(cnodes.size)), np.eye(n)[:, rows]], 1
     )
-    X = np.concatenate([lu.solve(loads[:, j : j + 64]) for j in range(0, loads.shape[1], 64)], axis=1)
-    q = cases.shape[1]
-    compliance = np.einsum("nq,nq->q", loads[:, :q], X[:, :q])
-    traces = X[rows, :q]
-    F = X[rows, q:]  # interface flexibility
+    X = np.concatenate([lu.solve(unit[:, j : j + 64]) for j in range(0, unit.shape[1], 64)], axis=1)
+    contact_rows = free_pos[_dofs(cnodes)]
+    C = X[contact_rows, :c3]  # static compliance of the contact dofs
+    compliance = np.einsum("aq,ab,bq->q", cases, 0.5 * (C + C.T), cases)
+    traces = X[rows, :c3] @ cases
+    F = X[rows, c3:]  # interface flexibility
     S_G = np.linalg.inv(0.5 * (F + F.T))
     rigid, _ = np.linalg.qr(_rigid_shapes(asm.nodes[gamma]))
     extra = _greedy_energy(traces, 0.5 * (S_G + S_G.T), rigid, compliance, tol)
@@ -559,7 +570,7 @@ def segment_basis(
     inner_pos[inner] = np.arange(inner.size)
     K_II, K_IG = K[inner][:, inner].tocsc(), K[inner][:, g]
     M_II, M_IG = M[inner][:, inner].tocsc(), M[inner][:, g]
-    lu = spla.splu(K_II)
+    lu = _factor(K_II)
     C_I = -lu.solve(np.asarray(K_IG @ psi)) if psi.shape[1] else np.zeros((inner.size, 0))
     if contact is not None:
         rows, factor, cases, compliance = contact
