@@ -400,12 +400,12 @@ def simulate(
         probe: (nf,) weights of the recorded scalar ``probe @ u`` (mm); default zeros.
         rtol, max_iter: Newton tolerance and iteration cap of ``"newton_midpoint"``.
         stop_ratio: once the energy exceeds ``stop_ratio`` times the initial energy the run is
-            declared diverged and its state set to NaN (every later step is then free: Newton
-            stops at once on a non-finite residual). Default: never.
+            declared diverged and its state set to NaN (every later step is then skipped).
+            Default: never.
 
     Returns:
-        A :class:`Trajectory`. A diverged or overflowing run keeps stepping on NaN (recorded
-        as such): the step count and shapes never depend on the data.
+        A :class:`Trajectory`. A diverged or overflowing run is recorded as NaN to the end
+        (its steps are skipped): the step count and shapes never depend on the data.
     """
     if method not in METHODS:
         raise ValueError(f"method = {method!r}: must be one of {', '.join(METHODS)}")
@@ -454,8 +454,13 @@ def simulate(
 
     e0 = total(u0, v0)
 
+    it_shape = jax.eval_shape(step, u0, v0)[2]
+
+    def skip(u, v):  # a stopped run: NaN state, no work
+        return u, v, jnp.zeros(it_shape.shape, it_shape.dtype), yes
+
     def body(c, _):
-        u, v, it, ok = step(*c)
+        u, v, it, ok = jax.lax.cond(jnp.all(jnp.isfinite(c[0])), step, skip, *c)
         e = total(u, v)
         stop = ~(e <= stop_ratio * e0)  # NaN compares False: stops too
         u, v = (jnp.where(stop, jnp.nan, a) for a in (u, v))
