@@ -172,6 +172,8 @@ def simulate(args) -> int:
         "method": model.method,
         "element": scene["solver"]["element"],
         "dof": model.n_dof,
+        "full_dof": int(model.host.free.size),
+        "reduced_orders": list(getattr(model.socket, "orders", ())),  # per segment, contact first
         "contact_points": model.n_samples,
         "steps_per_second": F.size / t_run,
         "build_seconds": t_build,

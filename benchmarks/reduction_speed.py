@@ -1,0 +1,226 @@
+"""Full against reduced socket, side by side: step time against the full model's size, in a
+``lax.scan`` rollout and stepping from Python one call at a time, and the reduction's build time.
+
+    python benchmarks/reduction_speed.py [--quick]
+
+For each P2 mesh (``solver.mesh_size``) the default scene is built with ``solver.method`` =
+``full`` and ``reduced`` (default ``solver.hsv_tolerance``), and rolled out in float32 (the
+scene's dtype) with two contact configurations:
+
+* ``default``: the scene's contact settings (64 slots, candidate lines every 1.0 mm across the
+  width, up to 500 APGD iterations);
+* ``light``: lines every 2.0 mm, 24 slots, up to 200 iterations (docs/reduction.md measures
+  what it costs in accuracy);
+
+and, for the reduced model only, ``floor``: the light configuration with one APGD iteration.
+It is not a usable setting (the contact is not solved); it measures what a step costs besides
+the contact solve.
+
+Timings: the PMI operator is prepared once, outside them; a rollout's rate is the faster of two
+compiled runs after a first one (whose excess is reported as compile time); the per-call rate
+steps a jitted ``step(state, control)`` through the same motion from a Python loop. The
+reduced build is timed with an empty cache (and again from the cache). Writes
+benchmarks/results/reduction_speed.{json,png} (``_quick`` with ``--quick``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import tempfile
+import time
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jsnap
+from jsnap._sim import _cast, init_state, step
+
+OUT = Path(__file__).parent / "results"
+CONFIGS = {
+    "default": {},
+    "light": {"contact.width_spacing": 2.0, "contact.capacity": 24, "contact.iterations": 200},
+    "floor": {"contact.width_spacing": 2.0, "contact.capacity": 24, "contact.iterations": 1},
+}
+
+
+def _build(scene):
+    t0 = time.perf_counter()
+    model = jsnap.build(scene)
+    return model, time.perf_counter() - t0
+
+
+def _per_call_rate(model, prepared, controls) -> float:
+    """Steps per second of a jitted step called once per step from Python (compile excluded)."""
+    dtype = jnp.dtype(model.dtype)
+    dyn, static = eqx.partition((_cast(model, dtype), _cast(prepared, dtype)), eqx.is_array)
+
+    @jax.jit
+    def one(dyn, state, control):
+        m, p = eqx.combine(dyn, static)
+        return step(m, p, state, control)[0]
+
+    state0 = init_state(model, dtype)
+    jax.block_until_ready(one(dyn, state0, controls[0]))
+    best = np.inf
+    for _ in range(2):
+        s = state0
+        t0 = time.perf_counter()
+        for c in controls:
+            s = one(dyn, s, c)
+        jax.block_until_ready(s)
+        best = min(best, time.perf_counter() - t0)
+    return len(controls) / best
+
+
+def run(mesh_size: float, method: str, config: str) -> dict:
+    scene = jsnap.load_scene().replace(
+        {"solver.mesh_size": mesh_size, "solver.method": method, **CONFIGS[config]}
+    )
+    model, build_s = _build(scene)
+    row = {
+        "mesh_size": mesh_size,
+        "method": method,
+        "config": config,
+        "full_dof": int(model.host.free.size),
+        "dof": model.n_dof,
+        "build_seconds": build_s,
+    }
+    if method == "reduced":
+        red = model.host.reduction
+        row["orders"] = list(model.socket.orders)
+        row["reduction_seconds"] = red["seconds"] if not red["cached"] else None
+        row["cached"] = red["cached"]
+    prepared = jsnap.prepare(model)
+    t0 = time.perf_counter()
+    res = jsnap.rollout(model, prepared=prepared)
+    jax.block_until_ready(res.energy)
+    first = time.perf_counter() - t0
+    times = []
+    for _ in range(2):
+        t0 = time.perf_counter()
+        jax.block_until_ready(jsnap.rollout(model, prepared=prepared).energy)
+        times.append(time.perf_counter() - t0)
+    run_s = min(times)
+    F = np.asarray(res.insertion_force, np.float64)
+    controls = jnp.asarray(model.trajectory()[1:], model.dtype)
+    row.update(
+        steps=int(F.size),
+        scan_steps_per_second=F.size / run_s,
+        scan_us_per_step=1e6 * run_s / F.size,
+        compile_seconds=first - run_s,
+        python_steps_per_second=_per_call_rate(model, prepared, controls),
+        peak_N=float(F.max()),
+        iterations_mean=float(np.asarray(res.iterations).mean()),
+        max_overflow=int(np.asarray(res.overflow).max()),
+        insertion_force=F.tolist(),
+    )
+    row["python_us_per_step"] = 1e6 / row["python_steps_per_second"]
+    return row
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="two coarse meshes, light contact only")
+    a = ap.parse_args(argv)
+    meshes = [2.0, 1.6] if a.quick else [2.0, 1.6, 1.2, 0.8]
+    configs = ["light"] if a.quick else ["default", "light"]
+    stem = "reduction_speed_quick" if a.quick else "reduction_speed"
+    load = [os.getloadavg()[0]]
+    rows = []
+    with tempfile.TemporaryDirectory() as cache:
+        os.environ["JSNAP_CACHE"] = cache  # time the reduction itself, then the cached load
+        for h in meshes:
+            for config in configs:
+                for method in ("full", "reduced"):
+                    rows.append(run(h, method, config))
+                    r = rows[-1]
+                    if method == "reduced":
+                        full = next(x for x in rows if x["mesh_size"] == h and x["config"] == config)
+                        F0, F = np.asarray(full["insertion_force"]), np.asarray(r["insertion_force"])
+                        r["rmse_vs_full_rel_peak"] = float(np.sqrt(np.mean((F - F0) ** 2)) / F0.max())
+                        r["scan_speedup"] = r["scan_steps_per_second"] / full["scan_steps_per_second"]
+                        r["python_speedup"] = r["python_steps_per_second"] / full["python_steps_per_second"]
+                    print({k: v for k, v in r.items() if k != "insertion_force"}, flush=True)
+            rows.append(run(h, "reduced", "floor"))
+            print({k: v for k, v in rows[-1].items() if k != "insertion_force"}, flush=True)
+            if not a.quick:  # the cached reduced model loads instead of being rebuilt
+                _, t = _build(jsnap.load_scene().replace({"solver.mesh_size": h, "solver.method": "reduced"}))
+                for r in rows:
+                    if r["mesh_size"] == h and r["method"] == "reduced":
+                        r["cached_build_seconds"] = t
+    load.append(os.getloadavg()[0])
+    machine = (
+        f"{platform.machine()}, {os.cpu_count()} CPU cores, {jax.devices()[0].platform}, "
+        f"load average {load[0]:.1f}-{load[1]:.1f}"
+    )
+
+    def pick(h, method, config):
+        return next(r for r in rows if r["mesh_size"] == h and r["method"] == method and r["config"] == config)
+
+    h_ref = 1.6  # the ~1300-dof mesh
+    red, full = pick(h_ref, "reduced", "light"), pick(h_ref, "full", "light")
+    headline = {
+        "mesh_size": h_ref,
+        "full_dof": full["full_dof"],
+        "orders": red["orders"],
+        "light_scan_steps_per_second": {
+            "full": full["scan_steps_per_second"],
+            "reduced": red["scan_steps_per_second"],
+        },
+        "light_python_steps_per_second": {
+            "full": full["python_steps_per_second"],
+            "reduced": red["python_steps_per_second"],
+        },
+        "scan_speedup": red["scan_speedup"],
+        "floor_scan_steps_per_second": pick(h_ref, "reduced", "floor")["scan_steps_per_second"],
+        "reduced_build_seconds": red["build_seconds"],
+    }
+    OUT.mkdir(exist_ok=True)
+    (OUT / f"{stem}.json").write_text(
+        json.dumps({"machine": machine, "configs": CONFIGS, "headline": headline, "rows": rows})
+    )
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8), sharey=True)
+    for ax, key, title in (
+        (axes[0], "scan_us_per_step", "lax.scan rollout"),
+        (axes[1], "python_us_per_step", "one jitted step per Python call"),
+    ):
+        for method, color in (("full", "C3"), ("reduced", "C0")):
+            for config, style in (("default", "--"), ("light", "-"), ("floor", ":")):
+                pts = [r for r in rows if r["method"] == method and r["config"] == config]
+                if not pts:
+                    continue
+                ax.loglog(
+                    [r["full_dof"] for r in pts],
+                    [r[key] for r in pts],
+                    style,
+                    color=color,
+                    marker="o",
+                    label=f"{method}, {config} contact",
+                )
+        for rate, y in (("10 kHz", 100.0), ("2 kHz", 500.0)):
+            ax.axhline(y, color="0.5", lw=0.7)
+            ax.text(min(r["full_dof"] for r in rows), y * 1.08, rate, fontsize=8)
+        ax.set_xlabel("full model free dofs (P2 mesh)")
+        ax.set_title(title)
+        ax.grid(alpha=0.3, which="both")
+    axes[0].set_ylabel("time per step (µs)")
+    axes[0].legend(fontsize=8)
+    fig.suptitle(f"Step time, full vs reduced socket (float32; {machine})", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(OUT / f"{stem}.png", dpi=120)
+
+
+if __name__ == "__main__":
+    main()
