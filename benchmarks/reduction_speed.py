@@ -14,7 +14,8 @@ scene's dtype) with two contact configurations:
 
 and, for the reduced model only, ``floor``: the light configuration with one APGD iteration.
 It is not a usable setting (the contact is not solved); it measures what a step costs besides
-the contact solve.
+the contact solve. The socket's own work per step (free velocity, point displacements, contact
+operator, energy, base wrench; no collision, no contact solve) is timed apart as well.
 
 Timings: the PMI operator is prepared once, outside them; a rollout's rate is the faster of two
 compiled runs after a first one (whose excess is reported as compile time); the per-call rate
@@ -78,6 +79,44 @@ def _per_call_rate(model, prepared, controls) -> float:
     return len(controls) / best
 
 
+def _socket_us_per_step(model, prepared, n: int = 300) -> float:
+    """Microseconds per step of the socket's own work (what ``step`` asks of it: free velocity,
+    candidate and stencil displacements, the contact operator of ``capacity`` points, their
+    velocity, energy and base wrench), without the collision and the contact solve."""
+    dtype = jnp.dtype(model.dtype)
+    m, p = _cast(model, dtype), _cast(prepared, dtype)
+    sock, op, mat = m.socket, p.op, p.params.material
+    idx = jnp.arange(model.capacity) * (model.n_samples // model.capacity)
+    force = jnp.full((model.capacity, 3), 1e-3, dtype)
+
+    @jax.jit
+    def loop(x0):
+        def body(_, c):
+            x, v = c
+            vbar = sock.free_velocity(op, x, v)
+            y = sock.sample_disp(x)
+            st = sock.stencil_disp(x, idx)
+            A, W = sock.contact_operator(op, idx)
+            g = force * (1 + 0 * (jnp.sum(W) + jnp.sum(st) + jnp.sum(y)))
+            vbar = vbar + jnp.einsum("cdn,cd->n", A, g)
+            u = sock.point_velocity(vbar, idx)
+            x_new, v_new = x + op.dt * vbar, 2 * vbar - v
+            e = sock.energy(op, x_new, v_new)
+            f, _ = sock.base_wrench(op, mat, x, v, v_new, vbar)
+            return x_new + 0 * (e + f[0] + jnp.sum(u)), v_new
+
+        return jax.lax.fori_loop(0, n, body, (x0, 0 * x0))
+
+    x0 = jnp.zeros(model.n_dof, dtype)
+    jax.block_until_ready(loop(x0))
+    best = np.inf
+    for _ in range(3):
+        t0 = time.perf_counter()
+        jax.block_until_ready(loop(x0))
+        best = min(best, time.perf_counter() - t0)
+    return 1e6 * best / n
+
+
 def run(mesh_size: float, method: str, config: str) -> dict:
     scene = jsnap.load_scene().replace(
         {"solver.mesh_size": mesh_size, "solver.method": method, **CONFIGS[config]}
@@ -115,6 +154,7 @@ def run(mesh_size: float, method: str, config: str) -> dict:
         scan_us_per_step=1e6 * run_s / F.size,
         compile_seconds=first - run_s,
         python_steps_per_second=_per_call_rate(model, prepared, controls),
+        socket_us_per_step=_socket_us_per_step(model, prepared),
         peak_N=float(F.max()),
         iterations_mean=float(np.asarray(res.iterations).mean()),
         max_overflow=int(np.asarray(res.overflow).max()),
@@ -146,6 +186,7 @@ def main(argv=None):
                         r["rmse_vs_full_rel_peak"] = float(np.sqrt(np.mean((F - F0) ** 2)) / F0.max())
                         r["scan_speedup"] = r["scan_steps_per_second"] / full["scan_steps_per_second"]
                         r["python_speedup"] = r["python_steps_per_second"] / full["python_steps_per_second"]
+                        r["socket_speedup"] = full["socket_us_per_step"] / r["socket_us_per_step"]
                     print({k: v for k, v in r.items() if k != "insertion_force"}, flush=True)
             rows.append(run(h, "reduced", "floor"))
             print({k: v for k, v in rows[-1].items() if k != "insertion_force"}, flush=True)
@@ -178,6 +219,7 @@ def main(argv=None):
             "reduced": red["python_steps_per_second"],
         },
         "scan_speedup": red["scan_speedup"],
+        "socket_speedup": red["socket_speedup"],
         "floor_scan_steps_per_second": pick(h_ref, "reduced", "floor")["scan_steps_per_second"],
         "reduced_build_seconds": red["build_seconds"],
     }
@@ -191,10 +233,11 @@ def main(argv=None):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8), sharey=True)
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.8), sharey=True)
     for ax, key, title in (
-        (axes[0], "scan_us_per_step", "lax.scan rollout"),
-        (axes[1], "python_us_per_step", "one jitted step per Python call"),
+        (axes[0], "scan_us_per_step", "whole step, lax.scan rollout"),
+        (axes[1], "python_us_per_step", "whole step, one jitted call from Python"),
+        (axes[2], "socket_us_per_step", "the socket's own work per step (no contact solve)"),
     ):
         for method, color in (("full", "C3"), ("reduced", "C0")):
             for config, style in (("default", "--"), ("light", "-"), ("floor", ":")):

@@ -624,9 +624,8 @@ class ReducedOperator(eqx.Module):
         M2T: (r, r) ``(2/T) M_r``.   K_el: (r, r) ``K_r`` without the interface springs, N/mm.
         m: (r, r) ``M_r``, t.
         kc: interface spring stiffness, N/mm.   sc: ``b_c + (T/2) k_c``, N s/mm.
-        NS: (c, 3, r) ``J_c S_inv`` for the contact nodes (``J_c`` = ``node_rows``).
-        WN: (c, 3, c, 3) ``J_c S_inv J_c'``: the contact nodes' Delassus operator, from which a
-            step's (C, 3, C, 3) block is interpolated without an (r, r) product.
+        NS: (c, 3, r) ``J_c S_inv`` for the contact nodes (``J_c`` = ``node_rows``): a step's
+            ``J S_inv`` is interpolated from it without an (r, r) product.
         dt: scalar time step T, s.
     """
 
@@ -638,7 +637,6 @@ class ReducedOperator(eqx.Module):
     kc: jax.Array
     sc: jax.Array
     NS: jax.Array
-    WN: jax.Array
     dt: jax.Array
 
     def astype(self, dtype) -> ReducedOperator:
@@ -712,8 +710,7 @@ class ReducedSocket(eqx.Module):
         S_inv = jax.scipy.linalg.cho_solve((chol, True), jnp.eye(S.shape[0], dtype=S.dtype))
         S_inv = 0.5 * (S_inv + S_inv.T)
         NS = jnp.einsum("cdr,rs->cds", self.node_rows, S_inv)
-        WN = jnp.einsum("cdr,efr->cdef", NS, self.node_rows)
-        return ReducedOperator(S_inv, S_el, (2.0 / dt) * M, K_el, M, kc, sc, NS, WN, dt)
+        return ReducedOperator(S_inv, S_el, (2.0 / dt) * M, K_el, M, kc, sc, NS, dt)
 
     def free_velocity(self, op: ReducedOperator, x, v):
         """Midpoint velocity with no contact force, ``S_r^-1 ((2/T) M_r v - K_r x)``, with one
@@ -738,14 +735,13 @@ class ReducedSocket(eqx.Module):
         return jnp.einsum("csk,cskd->csd", self.stencil_weights[idx], xn[self.stencil_nodes[idx]])
 
     def contact_operator(self, op: ReducedOperator, idx):
-        """``A = J S^-1`` (C, 3, r) and ``W = J S^-1 J'`` (C, 3, C, 3), interpolated from the
-        contact nodes' precomputed ``NS`` and ``WN``: O(C k r + c C k) per step, with no (r, r)
-        product (k interpolating nodes per point, c contact nodes)."""
+        """``A = J S^-1`` (C, 3, r), interpolated from the contact nodes' precomputed
+        ``J_c S^-1``, and ``W = A J'`` (C, 3, C, 3): O(C k r + (3C)^2 r) per step, no (r, r)
+        product (k interpolating nodes per point)."""
         w, nodes = self.sample_weights[idx], self.sample_nodes[idx]
         A = jnp.einsum("ck,ckdr->cdr", w, op.NS[nodes])
-        half = jnp.einsum("el,adelf->adef", w, op.WN[:, :, nodes, :])  # (c, 3, C, 3)
-        W = jnp.einsum("ck,ckdef->cdef", w, half[nodes])
-        return A, W
+        J = jnp.einsum("ck,ckdr->cdr", w, self.node_rows[nodes])
+        return A, jnp.einsum("cdr,efr->cdef", A, J)
 
     def point_velocity(self, vbar, idx):
         return jnp.einsum("ck,ckd->cd", self.sample_weights[idx], self._nodes(vbar)[self.sample_nodes[idx]])
