@@ -268,7 +268,10 @@ def test_free_displacement_reconstructs_the_static_deflection(models):
 def test_gradient_wrt_youngs_modulus_through_a_reduced_rollout(models):
     """V is held fixed: E enters only through prepare (lambda, mu times stored blocks), so the
     gradient of a contact rollout is exact; checked against central differences."""
-    red = dataclasses.replace(models["reduced"], iterations=60)  # a short, cheap rollout
+    # A short, cheap rollout; the gradient differentiates the solver's own 60 iterations
+    # ("unrolled"): exact for what the rollout computes (the implicit mode differentiates the
+    # converged solution, which 60 iterations only approach).
+    red = dataclasses.replace(models["reduced"], iterations=60, contact_gradient="unrolled")
     controls = red.trajectory()[1:13]  # on the ramp, in contact from the first step
 
     @jax.jit
@@ -295,14 +298,24 @@ def test_reduced_model_is_cached_and_a_corrupt_file_is_rebuilt(models, cache):
     assert meta["orders"] == list(red.socket.orders)
     # Corrupt the file: it is reported and rebuilt, never used.
     raw = bytearray(open(path, "rb").read())
-    raw[len(raw) // 2 : len(raw) // 2 + 64] = b"\0" * 64
+    raw[len(raw) // 4 : 3 * len(raw) // 4] = b"\0" * (3 * len(raw) // 4 - len(raw) // 4)  # array data
     open(path, "wb").write(bytes(raw))
     with pytest.raises(R.ReducedModelFileError, match=r"corrupt|unreadable|checksum"):
         R.load(path)
     with pytest.warns(UserWarning, match="rebuilding"):
         rebuilt = jsnap.build(scene)
     assert not rebuilt.host.reduction["cached"]
-    assert np.allclose(np.asarray(rebuilt.socket.kl), np.asarray(red.socket.kl))
+    # The rebuilt basis may differ by a change of coordinates (ARPACK's start vector), so the
+    # check is on invariants: the reduced model's generalised eigenvalues.
+    import scipy.linalg
+
+    def spectrum(sock):
+        k = np.asarray(sock.kl) + np.asarray(sock.km)
+        return scipy.linalg.eigh(k, np.asarray(sock.m1), eigvals_only=True)
+
+    assert rebuilt.socket.orders == red.socket.orders
+    ref = spectrum(red.socket)  # (segments float free without their coupling: zero modes)
+    np.testing.assert_allclose(spectrum(rebuilt.socket), ref, rtol=1e-6, atol=1e-9 * np.abs(ref).max())
     R.load(path, key=info["key"])  # valid again
 
 
