@@ -7,6 +7,8 @@ Units everywhere: mm, N, MPa, s, tonne (density in t/mm^3).
     model = jsnap.build(scene)            # host: mesh, assembly, contact samples
     result = jsnap.rollout(model)         # pure JAX: jit, vmap, grad
     result.insertion_force                # (steps,) N
+    jax.grad(loss)(params)                # through contact (docs/differentiation.md)
+    jsnap.identify(model, "measured.csv") # fit E, friction, damping to a measured force
 """
 
 import jax
@@ -15,12 +17,16 @@ import jax
 # are asked for (float32 by default). Without x64 JAX would silently demote the build.
 jax.config.update("jax_enable_x64", True)
 
+from jsnap._identify import FitResult, Measurement, MeasurementError, identify, load_measurement  # noqa: E402
 from jsnap._model import Model, Params, build  # noqa: E402
 from jsnap._scene import Scene, SceneError, load_scene  # noqa: E402
 from jsnap._sim import Prepared, Result, State, init_state, prepare, rollout, step  # noqa: E402
 
 __version__ = "0.1.0"
 __all__ = [
+    "FitResult",
+    "Measurement",
+    "MeasurementError",
     "Model",
     "Params",
     "Prepared",
@@ -29,7 +35,9 @@ __all__ = [
     "SceneError",
     "State",
     "build",
+    "identify",
     "init_state",
+    "load_measurement",
     "load_scene",
     "prepare",
     "rollout",

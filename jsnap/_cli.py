@@ -1,4 +1,5 @@
-"""Command line: ``jsnap simulate [SCENE.toml] [--out DIR] [--json]``, ``jsnap train-sdf [MESH]``."""
+"""Command line: ``jsnap simulate [SCENE.toml] [--out DIR] [--json]``, ``jsnap train-sdf [MESH]``,
+``jsnap fit SCENE.toml MEASURED.csv [--fit E,friction,...] [--out DIR] [--json]``."""
 
 from __future__ import annotations
 
@@ -297,9 +298,27 @@ def main(argv=None) -> int:
     bench.add_argument("names", nargs="*", help="benchmarks to run (default: all; see --list)")
     bench.add_argument("--quick", action="store_true", help="the quick variants (CI: a few minutes)")
     bench.add_argument("--list", action="store_true", help="list the benchmarks and exit")
+    fit = sub.add_parser("fit", help="fit E, friction, damping to a measured force history (CSV)")
+    fit.add_argument("scene", help="scene TOML file (its parameters are the starting point)")
+    fit.add_argument("measured", help="CSV: a time (t_s, time) and a force (insertion_force_N, force) column")
+    fit.add_argument(
+        "--fit", default="E,friction", help="comma-separated: E,friction,alpha,beta,time_shift,plug_offset"
+    )
+    fit.add_argument(
+        "--init", default=None, help="starting values overriding the scene's: E=1100,friction=0.15"
+    )
+    fit.add_argument("--max-iters", type=int, default=30, help="L-BFGS iterations at most (default 30)")
+    fit.add_argument("--time-column", default=None, help="name of the time column (s) if not a standard one")
+    fit.add_argument("--force-column", default=None, help="name of the force column (N) if not a standard one")
+    fit.add_argument("--out", default="jsnap-fit", help="output directory (default jsnap-fit)")
+    fit.add_argument("--json", action="store_true", help="print a JSON summary to stdout")
     args = parser.parse_args(argv)
     if args.command == "train-sdf":
         return train_sdf(args)
+    if args.command == "fit":
+        from jsnap._identify import fit_command
+
+        return fit_command(args)
     if args.command == "bench":
         from jsnap import _bench
 

@@ -1,0 +1,244 @@
+"""Gradients of a whole rollout through contact: implicit against unrolled differentiation of the
+contact solve, with and without checkpointing the step; and the gradient check against central
+finite differences in float64.
+
+    python benchmarks/differentiation.py [--quick]
+
+Loss: L = Σ_k F_k² (N²), F the insertion force, over the scene's whole insertion. Gradient with
+respect to E (MPa), friction, Rayleigh alpha (1/s) and beta (s), at alpha = 20 1/s and
+beta = 1e-5 s (the scene's values are 0, where a central difference would need negative
+damping). Full run: the default scene (P2 0.8 mm, 10 mm/s). ``--quick``: P2 1.5 mm at 20 mm/s.
+
+1. Cost, at the scene's contact settings (500 iterations, tolerance 1e-6): for
+   contact.gradient = implicit | unrolled and the step checkpointed or not, the compiled
+   ``jax.value_and_grad``'s temporary memory (XLA's memory analysis), compile time and run time
+   (the faster of two runs; not run when it would need more than ``--memory-limit`` GB).
+2. Gradient check: the contact solve converged (tolerance 1e-11); implicit gradient against
+   central differences with the relative steps ``H`` (chosen where the difference quotient is
+   flat: the contact set is discrete, so a step too large straddles contact events and one too
+   small drowns in the solver's round-off; the quick run prints a step-size sweep).
+3. The cost variants' gradients against that reference: how accurate each is at the default
+   tolerance.
+
+Writes benchmarks/results/differentiation{,_quick}.{json,png}.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jsnap
+from jsnap import _sim
+
+OUT = Path(__file__).parent / "results"
+NAMES = ("E", "friction", "alpha", "beta")
+# Relative central-difference steps (see the module docstring and docs/differentiation.md).
+H = {"E": 1e-3, "friction": 1e-4, "alpha": 1e-2, "beta": 1e-3}
+DAMPING = {"alpha": 20.0, "beta": 1e-5}
+TIGHT = {"contact.iterations": 20000, "contact.tolerance": 1e-11}
+
+
+def _scan_plain(model, prepared, state, controls, keep_x):
+    """_sim._scan without the checkpoint (reverse mode then stores every step's internals)."""
+
+    def body(s, c):
+        s, out = _sim.step(model, prepared, s, c)
+        return s, (out, s.x if keep_x else None)
+
+    return jax.lax.scan(body, state, controls)
+
+
+def _loss_fn(model):
+    base = model.params.replace(**DAMPING)
+
+    def loss(x):
+        r = jsnap.rollout(model, base.replace(**dict(zip(NAMES, x, strict=True))), dtype="float64")
+        return jnp.sum(r.insertion_force**2)
+
+    x0 = tuple(jnp.asarray(getattr(base, n)) for n in NAMES)
+    return loss, x0
+
+
+def cost(scene, gradient: str, checkpoint: bool, memory_limit_gb: float):
+    model = jsnap.build(scene.replace({"contact.gradient": gradient}))
+    loss, x0 = _loss_fn(model)
+    original = _sim._scan
+    if not checkpoint:
+        _sim._scan = eqx.filter_jit(_scan_plain)
+    try:
+        vg = jax.jit(jax.value_and_grad(loss))
+        t0 = time.perf_counter()
+        compiled = vg.lower(x0).compile()
+        t_compile = time.perf_counter() - t0
+        mem = compiled.memory_analysis()
+        temp_gb = mem.temp_size_in_bytes / 2**30
+        row = {
+            "gradient": gradient,
+            "checkpoint": checkpoint,
+            "dof": model.n_dof,
+            "steps": model.n_steps,
+            "compile_s": t_compile,
+            "temp_GB": temp_gb,
+            "argument_GB": mem.argument_size_in_bytes / 2**30,
+        }
+        if temp_gb > memory_limit_gb:
+            row["run_s"] = None
+            row["note"] = f"not run: needs {temp_gb:.1f} GB of temporaries (limit {memory_limit_gb} GB)"
+        else:
+            times = []
+            for _ in range(2):
+                t0 = time.perf_counter()
+                v, g = compiled(x0)
+                jax.block_until_ready(g)
+                times.append(time.perf_counter() - t0)
+            f = jax.jit(loss)
+            jax.block_until_ready(f(x0))
+            t0 = time.perf_counter()
+            jax.block_until_ready(f(x0))
+            row["forward_s"] = time.perf_counter() - t0
+            row["run_s"] = min(times)
+            row["loss"] = float(v)
+            row["grad"] = {n: float(gi) for n, gi in zip(NAMES, g, strict=True)}
+    finally:
+        _sim._scan = original
+    print({k: v for k, v in row.items() if k != "grad"}, flush=True)
+    return row
+
+
+def check(scene, sweep: bool):
+    model = jsnap.build(scene.replace(TIGHT))
+    loss, x0 = _loss_fn(model)
+    t0 = time.perf_counter()
+    v, g = jax.jit(jax.value_and_grad(loss))(x0)
+    t_grad = time.perf_counter() - t0
+    f = jax.jit(loss)
+    out = {"loss": float(v), "grad_seconds_with_compile": t_grad, "params": {}}
+    for i, n in enumerate(NAMES):
+        steps = (1e-2, 1e-3, 1e-4, 1e-5) if sweep else (H[n],)
+        fds = {}
+        for h in steps:
+            d = h * float(x0[i])
+            xp = list(x0)
+            xm = list(x0)
+            xp[i] = x0[i] + d
+            xm[i] = x0[i] - d
+            fds[h] = float((f(tuple(xp)) - f(tuple(xm))) / (2 * d))
+        fd = fds[H[n]]
+        out["params"][n] = {
+            "value": float(x0[i]),
+            "grad": float(g[i]),
+            "fd": fd,
+            "fd_step_rel": H[n],
+            "rel_error": abs(float(g[i]) / fd - 1),
+            "sweep": {f"{h:g}": {"fd": val, "rel_error": abs(float(g[i]) / val - 1)} for h, val in fds.items()},
+        }
+        print(n, out["params"][n], flush=True)
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="coarse mesh (P2 1.5 mm), 20 mm/s")
+    ap.add_argument("--memory-limit", type=float, default=6.0, help="GB of temporaries above which not to run")
+    ap.add_argument("--skip-cost", action="store_true")
+    a = ap.parse_args(argv)
+    changes = {"solver.dtype": "float64"}
+    if a.quick:
+        changes |= {"solver.mesh_size": 1.5, "motion.speed": 20.0}
+    scene = jsnap.load_scene().replace(changes)
+    machine = f"{platform.machine()}, {platform.processor() or platform.system()}, {jax.devices()[0].platform}"
+    stem = "differentiation_quick" if a.quick else "differentiation"
+    OUT.mkdir(exist_ok=True)
+    result = {"machine": machine, "changes": changes, "damping": DAMPING, "fd_steps": H, "tight": TIGHT}
+    path = OUT / f"{stem}.json"
+    if a.skip_cost and path.exists():
+        result["cost"] = json.loads(path.read_text()).get("cost", [])
+    else:
+        result["cost"] = [
+            cost(scene, g, c, a.memory_limit) for g in ("implicit", "unrolled") for c in (True, False)
+        ]
+    path.write_text(json.dumps(result, indent=2))
+    result["check"] = check(scene, sweep=a.quick)
+    ref = {n: p["fd"] for n, p in result["check"]["params"].items()}
+    for row in result["cost"]:
+        if row.get("grad"):
+            row["rel_error_vs_converged_fd"] = {n: abs(row["grad"][n] / ref[n] - 1) for n in NAMES}
+    path.write_text(json.dumps(result, indent=2))
+    plot(result, OUT / f"{stem}.png")
+
+
+def plot(result, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = result["cost"]
+    labels = [f"{r['gradient']}\n{'checkpoint' if r['checkpoint'] else 'no checkpoint'}" for r in rows]
+    fig, ax = plt.subplots(1, 3, figsize=(14, 4.8))
+    x = np.arange(len(rows))
+    ax[0].bar(x, [r["temp_GB"] for r in rows], color="tab:blue")
+    ax[0].set_yscale("log")
+    ax[0].set_ylabel("XLA temporaries of value_and_grad (GB)")
+    run = [r["run_s"] if r["run_s"] is not None else 0 for r in rows]
+    ax[1].bar(x, run, color="tab:orange")
+    for i, r in enumerate(rows):
+        if r["run_s"] is None:
+            ax[1].text(i, 0, "not run\n(memory)", ha="center", va="bottom", fontsize=8)
+        elif "forward_s" in r:
+            ax[1].text(
+                i, r["run_s"], f"{r['run_s'] / r['forward_s']:.1f}× fwd", ha="center", va="bottom", fontsize=8
+            )
+    ax[1].set_ylabel("value_and_grad run time (s)")
+    for a in ax[:2]:
+        a.set_xticks(x, labels, fontsize=8)
+        a.grid(alpha=0.3, axis="y")
+    chk = result["check"]["params"]
+    names = list(chk)
+    w = 0.8 / (1 + sum(1 for r in rows if r.get("grad")))
+    ax[2].bar(
+        np.arange(len(names)) - 0.4 + w / 2,
+        [max(chk[n]["rel_error"], 1e-16) for n in names],
+        w,
+        label="implicit, converged solve (tol 1e-11)",
+    )
+    k = 1
+    for r, lab in zip(rows, labels, strict=True):
+        if r.get("grad"):
+            e = r["rel_error_vs_converged_fd"]
+            ax[2].bar(
+                np.arange(len(names)) - 0.4 + w / 2 + k * w,
+                [max(e[n], 1e-16) for n in names],
+                w,
+                label=lab.replace("\n", ", ") + ", tol 1e-6",
+            )
+            k += 1
+    ax[2].axhline(1e-3, color="k", ls="--", lw=0.8)
+    ax[2].set_yscale("log")
+    ax[2].set_xticks(np.arange(len(names)), names)
+    ax[2].set_ylabel("|grad / central FD − 1| (FD on the converged solve)")
+    ax[2].legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=2)
+    ax[2].grid(alpha=0.3, axis="y")
+    ch = result["changes"]
+    what = (
+        "coarse scene (P2 1.5 mm, 20 mm/s)"
+        if "solver.mesh_size" in ch
+        else "default scene (P2 0.8 mm, 10 mm/s)"
+    )
+    fig.suptitle(f"d(Σ F²)/d(E, μ, α, β) through contact, {what}, float64 — {result['machine']}", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()

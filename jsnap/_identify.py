@@ -1,0 +1,703 @@
+"""Parameter identification: fit E, friction, damping (and a time shift / plug offset) of a scene
+to a measured insertion-force history.
+
+    meas = jsnap.load_measurement("forces.csv")       # time (s) and force (N) columns
+    fit = jsnap.identify(model, meas, fit=("E", "friction"))
+    fit.values, fit.std_errors                          # MPa, -, 1/s, s, s, mm
+    fit.plot("fit.png")
+
+The measured history is resampled onto the simulation's output times ``t_k = k dt`` (linear
+interpolation when it is sampled at most as fast as the simulation; the average over each step's
+window when faster, which also averages the noise down), then
+
+    loss(θ) = ½ mean_k ((F_sim,k(θ) − F_meas,k) / s)²,     s = max |F_meas|
+
+is minimised by L-BFGS (``optax.scale_by_lbfgs``) with a backtracking (Armijo) line search. The
+fitted variables are logarithms of the positive parameters (E, friction, alpha, beta: positive by
+construction) and the time shift and plug offset scaled by a step's duration and travel. The
+gradient is ``jax.grad`` of the whole rollout, through contact (implicit differentiation of the
+contact solve, ``_implicit``). Uncertainty: the Gauss–Newton (Laplace) covariance
+``σ² (JᵀJ)⁻¹`` with ``J = ∂r/∂θ`` the Jacobian of the residuals (forward mode, one pass per
+parameter) and ``σ²`` the residual variance; standard errors are mapped to the parameters' own
+units by the delta method. They assume independent residuals: model error that is correlated
+in time makes them optimistic.
+
+Units: mm, N, MPa, s, tonne.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from jsnap._model import Model, Params
+from jsnap._sim import rollout
+
+__all__ = ["FIT_PARAMETERS", "FitResult", "Measurement", "MeasurementError", "identify", "load_measurement"]
+
+# What can be fitted, in the parameters' own units.
+FIT_PARAMETERS = {
+    "E": "MPa",
+    "friction": "",
+    "alpha": "1/s",
+    "beta": "s",
+    "time_shift": "s",
+    "plug_offset": "mm",
+}
+_POSITIVE = ("E", "friction", "alpha", "beta")
+# Starting values of positive parameters that are 0 in the scene (a log cannot start at 0).
+_ZERO_START = {"alpha": 1.0, "beta": 1e-6, "friction": 0.1}
+
+# Accepted column names (lower case, spaces as underscores) and the factor to s / N.
+_TIME_COLUMNS = {"t_s": 1.0, "time_s": 1.0, "time": 1.0, "t": 1.0, "t_ms": 1e-3, "time_ms": 1e-3}
+_FORCE_COLUMNS = {
+    "insertion_force_n": 1.0,
+    "insertion_force": 1.0,
+    "force_n": 1.0,
+    "force": 1.0,
+    "f_n": 1.0,
+    "f": 1.0,
+    "fz_n": 1.0,
+    "insertion_force_mn": 1e-3,
+    "force_mn": 1e-3,
+    "insertion_force_kn": 1e3,
+    "force_kn": 1e3,
+}
+# A measured scale this many times off the simulated one is a unit error, not a parameter
+# error (the fit starts within a factor of a few of the truth).
+_UNIT_FACTOR = 20.0
+
+
+class MeasurementError(ValueError):
+    """Measured force data that cannot be used; the message names the file, column and rows."""
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """A measured insertion-force history.
+
+    Attributes:
+        t: (m,) strictly increasing times, s (t = 0 when the plug starts moving).
+        force: (m,) insertion force, N (positive while the socket resists the plug).
+        source: where it came from (file name), for messages.
+        columns: the (time, force) column names used.
+    """
+
+    t: np.ndarray
+    force: np.ndarray
+    source: str = "<array>"
+    columns: tuple[str, str] = ("t_s", "insertion_force_N")
+
+    def __post_init__(self):
+        t = np.asarray(self.t, dtype=float)
+        f = np.asarray(self.force, dtype=float)
+        where = f"{self.source}"
+        if t.ndim != 1 or f.shape != t.shape:
+            raise MeasurementError(
+                f"{where}: time and force must be 1-D of one length, got {t.shape} and {f.shape}"
+            )
+        if t.size < 4:
+            raise MeasurementError(f"{where}: {t.size} samples; at least 4 are needed")
+        for name, a in ((self.columns[0], t), (self.columns[1], f)):
+            bad = np.flatnonzero(~np.isfinite(a))
+            if bad.size:
+                rows = ", ".join(str(i + 1) for i in bad[:5]) + (" ..." if bad.size > 5 else "")
+                raise MeasurementError(
+                    f"{where}: column {name!r} has {bad.size} NaN/inf value(s) (data rows {rows}); "
+                    "remove or fill them"
+                )
+        back = np.flatnonzero(np.diff(t) <= 0)
+        if back.size:
+            i = back[0]
+            raise MeasurementError(
+                f"{where}: time column {self.columns[0]!r} is not strictly increasing: data row {i + 2} "
+                f"has t = {t[i + 1]:g} after t = {t[i]:g} ({back.size} such place(s)); sort the samples and "
+                "drop duplicates"
+            )
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "force", f)
+
+
+def _find_column(header: list[str], accepted: dict, given: str | None, what: str, source: str):
+    norm = [h.strip().lower().replace(" ", "_") for h in header]
+    if given is not None:
+        key = given.strip().lower().replace(" ", "_")
+        if key not in norm:
+            raise MeasurementError(f"{source}: no column {given!r} (columns: {', '.join(header)})")
+        return norm.index(key), accepted.get(key, 1.0), header[norm.index(key)]
+    for name, factor in accepted.items():
+        if name in norm:
+            return norm.index(name), factor, header[norm.index(name)]
+    raise MeasurementError(
+        f"{source}: missing {what} column: none of {', '.join(header) or '(no header)'} is one of "
+        f"{', '.join(accepted)} (or name it with time_column= / force_column=, --time-column / --force-column)"
+    )
+
+
+def load_measurement(path, *, time_column: str | None = None, force_column: str | None = None) -> Measurement:
+    """Read a measured force history from a CSV file with a header row.
+
+    Time columns recognised: ``t_s``, ``time_s``, ``time``, ``t`` (seconds), ``t_ms``,
+    ``time_ms`` (milliseconds, converted). Force: ``insertion_force_N``, ``force_N``, ``force``,
+    ``F``, ``Fz_N`` (newtons), ``*_mN``, ``*_kN`` (converted). Case and spaces do not matter.
+    The ``forces.csv`` of ``jsnap simulate`` is accepted as is.
+
+    Raises:
+        MeasurementError: missing file or columns, non-numeric, NaN or non-monotonic values.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise MeasurementError(f"measured force file {str(path)!r} does not exist")
+    with open(path, newline="") as fh:
+        rows = [r for r in csv.reader(fh) if r and not r[0].lstrip().startswith("#")]
+    if not rows:
+        raise MeasurementError(f"{path}: empty file")
+    header = [h.strip() for h in rows[0]]
+    if all(_is_number(h) for h in header):
+        raise MeasurementError(
+            f"{path}: no header row (the first line is numbers); name the columns, e.g. 't_s,insertion_force_N'"
+        )
+    it, ft, tname = _find_column(header, _TIME_COLUMNS, time_column, "time", str(path))
+    iF, fF, fname = _find_column(header, _FORCE_COLUMNS, force_column, "force", str(path))
+    t, f = [], []
+    for k, r in enumerate(rows[1:], start=2):
+        if len(r) <= max(it, iF):
+            raise MeasurementError(
+                f"{path}: line {k} has {len(r)} fields, fewer than the header's {len(header)}"
+            )
+        vals = []
+        for col, name in ((it, tname), (iF, fname)):
+            s = r[col].strip()
+            try:
+                vals.append(float(s) if s else math.nan)
+            except ValueError:
+                raise MeasurementError(f"{path}: line {k}, column {name!r}: {s!r} is not a number") from None
+        t.append(vals[0] * ft)
+        f.append(vals[1] * fF)
+    return Measurement(np.array(t), np.array(f), str(path), (tname, fname))
+
+
+def _is_number(s: str) -> bool:
+    try:
+        float(s)
+    except ValueError:
+        return False
+    return True
+
+
+def _window_average(t, f, a, b):
+    """Average over [a, b] (arrays) of the piecewise-linear interpolant of (t, f)."""
+    h = np.diff(t)
+    I = np.concatenate([[0.0], np.cumsum(0.5 * h * (f[1:] + f[:-1]))])
+
+    def integral(x):
+        j = np.clip(np.searchsorted(t, x, side="right") - 1, 0, t.size - 2)
+        d = x - t[j]
+        return I[j] + f[j] * d + (f[j + 1] - f[j]) * d * d / (2 * h[j])
+
+    return (integral(b) - integral(a)) / (b - a)
+
+
+def resample(meas: Measurement, t_sim: np.ndarray, dt: float):
+    """The measured force at the simulation's output times.
+
+    Returns ``(force, mask)``, each (n,): the resampled force (N) and which times the
+    measurement covers. Linear interpolation if the measurement is sampled at most as fast as
+    the simulation (median spacing ≥ dt/2), else the mean over each step's window
+    ``[t_k − dt/2, t_k + dt/2]`` (anti-aliasing: it also averages the noise).
+    """
+    t, f = meas.t, meas.force
+    fast = np.median(np.diff(t)) < 0.5 * dt
+    half = 0.5 * dt if fast else 0.0
+    mask = (t_sim - half >= t[0] - 1e-12 * dt) & (t_sim + half <= t[-1] + 1e-12 * dt)
+    ts = np.clip(t_sim, t[0] + half, t[-1] - half)
+    out = _window_average(t, f, ts - half, ts + half) if fast else np.interp(ts, t, f)
+    return np.where(mask, out, 0.0), mask
+
+
+@dataclass
+class FitResult:
+    """Outcome of :func:`identify`.
+
+    Attributes:
+        names: fitted parameters, in order.
+        values, initial: fitted and starting values, in the parameters' units (FIT_PARAMETERS).
+        std_errors: Gauss–Newton (Laplace) standard errors, same units (``inf`` if a parameter
+            does not affect the force).
+        correlation: (p, p) correlation matrix of the estimates.
+        params: the fitted :class:`Params` (other fields as in the scene).
+        t: (n,) simulation output times, s;   mask: (n,) times covered by the measurement.
+        measured, fitted, start: (n,) resampled measurement, fitted and initial model force, N.
+        rms_residual: N, over the covered times;   noise_estimate: the residual σ, N.
+        loss_history: loss after each iteration;   iterations, evaluations: optimiser iterations
+        and rollout gradient evaluations;   seconds: wall time (compilation included).
+        converged: the step fell below ``xtol`` (not just ``max_iters`` reached).
+    """
+
+    names: tuple[str, ...]
+    values: dict
+    initial: dict
+    std_errors: dict
+    correlation: np.ndarray
+    params: Params
+    t: np.ndarray
+    mask: np.ndarray
+    measured: np.ndarray
+    fitted: np.ndarray
+    start: np.ndarray
+    rms_residual: float
+    noise_estimate: float
+    loss_history: list = field(default_factory=list)
+    iterations: int = 0
+    evaluations: int = 0
+    seconds: float = 0.0
+    converged: bool = False
+    source: str = ""
+
+    def to_dict(self) -> dict:
+        """JSON-serialisable summary."""
+        return {
+            "measured": self.source,
+            "fit": list(self.names),
+            "values": {k: float(v) for k, v in self.values.items()},
+            "initial": {k: float(v) for k, v in self.initial.items()},
+            "std_errors": {k: float(v) for k, v in self.std_errors.items()},
+            "relative_std_errors": {
+                k: (float(self.std_errors[k] / abs(v)) if v != 0 else None) for k, v in self.values.items()
+            },
+            "units": {k: FIT_PARAMETERS[k] for k in self.names},
+            "correlation": np.asarray(self.correlation).tolist(),
+            "rms_residual_N": self.rms_residual,
+            "noise_estimate_N": self.noise_estimate,
+            "samples": int(self.mask.sum()),
+            "iterations": self.iterations,
+            "gradient_evaluations": self.evaluations,
+            "converged": self.converged,
+            "seconds": self.seconds,
+            "loss_history": [float(v) for v in self.loss_history],
+        }
+
+    def summary(self) -> str:
+        lines = []
+        for k in self.names:
+            u = FIT_PARAMETERS[k]
+            v, se, v0 = self.values[k], self.std_errors[k], self.initial[k]
+            rel = f" ({100 * se / abs(v):.2g} %)" if v != 0 and np.isfinite(se) else ""
+            lines.append(f"  {k:12s} = {v:.6g} ± {se:.2g}{rel} {u}   (start {v0:.6g})")
+        lines.append(
+            f"  rms residual {self.rms_residual:.4g} N over {int(self.mask.sum())} samples; "
+            f"{self.iterations} iterations, {self.evaluations} gradient evaluations, {self.seconds:.1f} s"
+            + ("" if self.converged else " (not converged: max_iters reached)")
+        )
+        return "\n".join(lines)
+
+    def plot(self, path, title: str | None = None) -> Path:
+        """PNG of measured vs fitted (and initial) force over time."""
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        m = self.mask
+        t = self.t[m] * 1e3
+        fig, ax = plt.subplots(2, 1, figsize=(8, 6), sharex=True, gridspec_kw={"height_ratios": [3, 1]})
+        ax[0].plot(t, self.measured[m], ".", ms=3, color="0.4", label="measured (resampled)")
+        ax[0].plot(t, self.start[m], "--", lw=1.0, color="tab:orange", label="model at the start")
+        ax[0].plot(t, self.fitted[m], lw=1.6, color="tab:blue", label="fitted model")
+        ax[0].set_ylabel("insertion force (N)")
+        ax[0].grid(alpha=0.3)
+        ax[0].legend(fontsize=8)
+        fitted = ", ".join(f"{k} = {self.values[k]:.4g} ± {self.std_errors[k]:.2g}" for k in self.names)
+        ax[0].set_title(title or f"jsnap fit: {fitted}", fontsize=9)
+        ax[1].plot(t, self.measured[m] - self.fitted[m], ".", ms=3, color="tab:red")
+        ax[1].axhline(0, color="0.5", lw=0.6)
+        ax[1].set_ylabel("residual (N)")
+        ax[1].set_xlabel("time (ms)")
+        ax[1].grid(alpha=0.3)
+        fig.tight_layout()
+        path = Path(path)
+        fig.savefig(path, dpi=120)
+        plt.close(fig)
+        return path
+
+    def write(self, out) -> dict:
+        """Write fit.json, fit.csv and fit.png to the directory ``out``; returns the paths."""
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        d = self.to_dict()
+        paths = {"json": str(out / "fit.json"), "csv": str(out / "fit.csv"), "png": str(out / "fit.png")}
+        d["outputs"] = paths
+        (out / "fit.json").write_text(json.dumps(d, indent=2))
+        m = self.mask
+        np.savetxt(
+            out / "fit.csv",
+            np.column_stack([self.t[m], self.measured[m], self.fitted[m], self.start[m]]),
+            delimiter=",",
+            header="t_s,measured_N,fitted_N,initial_N",
+            comments="",
+            fmt="%.8g",
+        )
+        self.plot(out / "fit.png")
+        return d
+
+
+class _Problem(eqx.Module):
+    """The model's insertion force as a function of the fit variables θ (a pytree leaf)."""
+
+    model: Model
+    base: Params
+    t_table: jax.Array  # (K,) s, the scene's desired plug z over time
+    z_table: jax.Array  # (K,) mm
+    xy: jax.Array  # (2,) plug centre x, y, mm
+    names: tuple[str, ...] = eqx.field(static=True)
+    n_steps: int = eqx.field(static=True)
+    dt: float = eqx.field(static=True)
+    step_travel: float = eqx.field(static=True)
+
+    def unpack(self, theta):
+        """θ -> dict of parameter values (parameters' units)."""
+        out = {}
+        for i, k in enumerate(self.names):
+            if k in _POSITIVE:
+                out[k] = jnp.exp(theta[i])
+            elif k == "time_shift":
+                out[k] = theta[i] * self.dt
+            else:
+                out[k] = theta[i] * self.step_travel
+        return out
+
+    def force(self, theta):
+        vals = self.unpack(theta)
+        params = self.base.replace(**{k: v for k, v in vals.items() if k in _POSITIVE})
+        shift = vals.get("time_shift", 0.0)
+        offset = vals.get("plug_offset", 0.0)
+        t = (jnp.arange(self.n_steps) + 1) * self.dt
+        z = jnp.interp(t - shift, self.t_table, self.z_table) + offset
+        controls = jnp.concatenate([jnp.broadcast_to(self.xy, (self.n_steps, 2)), z[:, None]], axis=1)
+        model = self.model
+        if "plug_offset" in vals:
+            model = eqx.tree_at(lambda m: m.plug_start, model, model.plug_start.at[2].add(offset))
+        return rollout(model, params, controls=controls, dtype="float64").insertion_force
+
+
+class _Objective(eqx.Module):
+    """Normalised least-squares loss of a :class:`_Problem` against the resampled data."""
+
+    prob: _Problem
+    target: jax.Array  # (n,) N
+    weight: jax.Array  # (n,) 1 where the measurement covers the step, else 0
+    scale: jax.Array  # () N
+    count: jax.Array  # () samples covered
+
+    def loss(self, theta):
+        """The loss and, as auxiliary output, the model's force (n,)."""
+        F = self.prob.force(theta)
+        r = (F - self.target) * self.weight / self.scale
+        return 0.5 * jnp.sum(r * r) / self.count, F
+
+
+@eqx.filter_jit
+def _value_and_grad(obj: _Objective, theta):
+    """((loss, force), gradient); one compilation per model and data length."""
+    return jax.value_and_grad(obj.loss, has_aux=True)(theta)
+
+
+@eqx.filter_jit
+def _force_and_jacobian(prob: _Problem, theta):
+    """Force (n,) and its Jacobian (n, p) by forward mode (p passes, batched)."""
+    return prob.force(theta), jax.jacfwd(prob.force)(theta)
+
+
+def _problem(model: Model, base: Params, names, n_steps: int) -> _Problem:
+    traj = np.asarray(model.trajectory())
+    t_tab = np.arange(traj.shape[0]) * model.dt
+    return _Problem(
+        model=model,
+        base=base,
+        t_table=jnp.asarray(t_tab),
+        z_table=jnp.asarray(traj[:, 2]),
+        xy=jnp.asarray(traj[0, :2]),
+        names=tuple(names),
+        n_steps=n_steps,
+        dt=model.dt,
+        step_travel=model.speed * model.dt,
+    )
+
+
+def _check_time_scale(meas: Measurement, duration: float):
+    """Time-unit errors, judged against the duration of the scene's motion (s)."""
+    tname = meas.columns[0]
+    span = meas.t[-1] - meas.t[0]
+    if span > _UNIT_FACTOR * duration:
+        hint = " — is it in ms?" if 200 < span / duration < 5000 else ""
+        raise MeasurementError(
+            f"{meas.source}: time column {tname!r} spans {span:g} s but the scene's motion lasts "
+            f"{duration:g} s (a factor {span / duration:.3g}){hint}; give time in s (or name the column t_ms)"
+        )
+    if span < duration / _UNIT_FACTOR:
+        raise MeasurementError(
+            f"{meas.source}: time column {tname!r} spans only {span:g} s, the scene's motion {duration:g} s "
+            f"(a factor {duration / span:.3g} shorter); give time in seconds"
+        )
+    if meas.t[0] >= duration:
+        raise MeasurementError(
+            f"{meas.source}: time column {tname!r} starts at {meas.t[0]:g} s, after the scene's motion ends "
+            f"({duration:g} s); time must count from the start of the motion"
+        )
+
+
+def _check_force_scale(meas: Measurement, sim_peak: float, measured_peak: float):
+    """Force-unit errors, judged against the model's peak force at the starting parameters (N)."""
+    fname = meas.columns[1]
+    if sim_peak <= 0:
+        raise MeasurementError("the model gives no insertion force at the starting parameters: nothing to fit")
+    ratio = measured_peak / sim_peak
+    if ratio > _UNIT_FACTOR or ratio < 1 / _UNIT_FACTOR:
+        hint = ""
+        if 200 < ratio < 5000:
+            hint = " — is it in mN? (name the column force_mN)"
+        elif 1 / 5000 < ratio < 1 / 200:
+            hint = " — is it in kN? (name the column force_kN)"
+        raise MeasurementError(
+            f"{meas.source}: force column {fname!r} peaks at {measured_peak:.4g} but the model gives "
+            f"{sim_peak:.4g} N at the starting parameters (a factor {ratio:.3g}){hint}; give force in N"
+        )
+
+
+def identify(
+    model: Model,
+    measured: Measurement | str | Path,
+    *,
+    fit=("E", "friction"),
+    initial: dict | None = None,
+    max_iters: int = 30,
+    xtol: float = 1e-4,
+    progress: bool = True,
+) -> FitResult:
+    """Fit parameters of ``model`` to a measured insertion-force history.
+
+    Args:
+        model: ``jsnap.build(scene)``; the scene's parameters are the starting point (and the
+            values of the parameters not fitted).
+        measured: a :class:`Measurement` or a CSV path (see :func:`load_measurement`), time in
+            s from the start of the motion, force in N. Samples beyond the scene's motion keep
+            the plug at its final position.
+        fit: names from ``FIT_PARAMETERS``: ``E`` (MPa), ``friction``, ``alpha`` (1/s),
+            ``beta`` (s), ``time_shift`` (s, the measurement lags the motion by this),
+            ``plug_offset`` (mm along +z, the plug's actual path is offset by this).
+        initial: starting values overriding the scene's (parameters' units); a positive
+            parameter that is 0 in the scene starts at ``_ZERO_START``.
+        max_iters: L-BFGS iterations at most.
+        xtol: stop when no fit variable (log of a positive parameter; shift/offset in steps)
+            changes by more than this in an iteration.
+        progress: show a tqdm progress bar.
+
+    Returns:
+        :class:`FitResult`.
+
+    Raises:
+        MeasurementError: unusable data (see :func:`load_measurement`) or units obviously off.
+        ValueError: unknown parameter names or non-positive starting values.
+    """
+    t0 = time.perf_counter()
+    names = tuple(dict.fromkeys(fit))
+    bad = [k for k in names if k not in FIT_PARAMETERS]
+    if bad or not names:
+        raise ValueError(
+            f"fit: unknown parameter(s) {bad or '(none given)'}; choose from {', '.join(FIT_PARAMETERS)}"
+        )
+    meas = measured if isinstance(measured, Measurement) else load_measurement(measured)
+    initial = dict(initial or {})
+    unknown = [k for k in initial if k not in FIT_PARAMETERS]
+    if unknown:
+        raise ValueError(f"initial: unknown parameter(s) {unknown}; choose from {', '.join(FIT_PARAMETERS)}")
+    start = {}
+    for k in names:
+        if k in _POSITIVE:
+            v = float(initial.get(k, float(getattr(model.params, k))))
+            if k not in initial and v == 0:
+                v = _ZERO_START[k]
+            if not v > 0:
+                raise ValueError(f"initial {k} = {v:g}: must be > 0 (it is fitted as a logarithm)")
+        else:
+            v = float(initial.get(k, 0.0))
+        start[k] = v
+    base = model.params.replace(**{k: v for k, v in initial.items() if k in _POSITIVE and k not in names})
+
+    dt = model.dt
+    _check_time_scale(meas, model.n_steps * dt)
+    n_steps = max(1, math.floor(meas.t[-1] / dt + 1e-9))
+    t_sim = (np.arange(n_steps) + 1) * dt
+    F_meas, mask = resample(meas, t_sim, dt)
+    if mask.sum() < 4:
+        raise MeasurementError(
+            f"{meas.source}: only {int(mask.sum())} of the simulation's output times ({dt:g} s apart) lie "
+            f"within the measurement's time range [{meas.t[0]:g}, {meas.t[-1]:g}] s"
+        )
+    prob = _problem(model, base, names, n_steps)
+    theta0 = np.array(
+        [
+            math.log(start[k]) if k in _POSITIVE else start[k] / (dt if k == "time_shift" else prob.step_travel)
+            for k in names
+        ]
+    )
+    obj = _Objective(
+        prob,
+        jnp.asarray(F_meas),
+        jnp.asarray(mask, jnp.float64),
+        jnp.asarray(float(np.max(np.abs(F_meas[mask])))),
+        jnp.asarray(float(mask.sum())),
+    )
+
+    def value_and_grad(th):
+        (v, _), g = _value_and_grad(obj, th)
+        return v, g
+
+    theta = jnp.asarray(theta0)
+    (value, F0), grad = _value_and_grad(obj, theta)
+    F0 = np.asarray(F0)
+    _check_force_scale(meas, float(np.max(np.abs(F0[mask]))), float(np.max(np.abs(F_meas[mask]))))
+    opt = optax.scale_by_lbfgs()
+    state = opt.init(theta)
+    evaluations = 1
+    history = [float(value)]
+    converged = False
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=max_iters, desc="jsnap fit", unit="it")
+    it = 0
+    for it in range(1, max_iters + 1):  # noqa: B007
+        # optax's L-BFGS transform returns the preconditioned gradient H g (optax.lbfgs then
+        # scales it by -lr); -H g is the descent direction, its step backtracked (Armijo).
+        scaled, state = opt.update(grad, state, theta)
+        direction = -scaled
+        slope = float(jnp.vdot(grad, direction))
+        if not slope < 0:  # not a descent direction (curvature pair rejected): steepest descent
+            direction = -grad
+            slope = float(-jnp.vdot(grad, grad))
+        step = 1.0
+        accepted = False
+        for _ in range(12):
+            cand = theta + step * direction
+            v_new, g_new = value_and_grad(cand)
+            evaluations += 1
+            if np.isfinite(float(v_new)) and float(v_new) <= float(value) + 1e-4 * step * slope:
+                accepted = True
+                break
+            step *= 0.3
+        if not accepted:
+            converged = True  # no decrease along a descent direction: at the noise floor
+            break
+        change = float(jnp.max(jnp.abs(cand - theta)))
+        theta, value, grad = cand, v_new, g_new
+        history.append(float(value))
+        if bar is not None:
+            vals = prob.unpack(theta)
+            bar.set_postfix({k: f"{float(v):.4g}" for k, v in vals.items()} | {"loss": f"{float(value):.3g}"})
+            bar.update(1)
+        if change < xtol:
+            converged = True
+            break
+    if bar is not None:
+        bar.close()
+
+    # Gauss–Newton / Laplace covariance from the residuals' Jacobian (forward mode).
+    F_fit, J = _force_and_jacobian(prob, theta)
+    F_fit, J = np.asarray(F_fit), np.asarray(J)[mask]
+    r = (F_fit - F_meas)[mask]
+    m, p = r.size, len(names)
+    sigma2 = float(r @ r) / max(m - p, 1)
+    vals = {k: float(v) for k, v in prob.unpack(theta).items()}
+    # d value / d theta: value for logs, the scale for shift/offset.
+    dv = np.array(
+        [vals[k] if k in _POSITIVE else (dt if k == "time_shift" else prob.step_travel) for k in names]
+    )
+    JtJ = J.T @ J
+    try:
+        cov_theta = sigma2 * np.linalg.inv(JtJ)
+        if not np.all(np.isfinite(cov_theta)) or np.any(np.diag(cov_theta) < 0):
+            raise np.linalg.LinAlgError
+    except np.linalg.LinAlgError:
+        cov_theta = sigma2 * np.linalg.pinv(JtJ)
+        cov_theta[np.diag(JtJ) <= 0] = np.inf
+    cov = cov_theta * np.outer(dv, dv)
+    se = np.sqrt(np.abs(np.diag(cov)))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(se, se)
+    fitted_params = base.replace(**{k: vals[k] for k in names if k in _POSITIVE})
+    return FitResult(
+        names=names,
+        values=vals,
+        initial=start,
+        std_errors={k: float(s) for k, s in zip(names, se, strict=True)},
+        correlation=corr,
+        params=fitted_params,
+        t=t_sim,
+        mask=mask,
+        measured=F_meas,
+        fitted=F_fit,
+        start=F0,
+        rms_residual=float(np.sqrt(np.mean(r * r))),
+        noise_estimate=math.sqrt(sigma2),
+        loss_history=history,
+        iterations=it,
+        evaluations=evaluations,
+        seconds=time.perf_counter() - t0,
+        converged=converged,
+        source=meas.source,
+    )
+
+
+def _parse_init(text: str | None) -> dict:
+    out = {}
+    for item in filter(None, (s.strip() for s in (text or "").split(","))):
+        key, sep, val = item.partition("=")
+        if not sep:
+            raise ValueError(f"--init: {item!r} is not NAME=VALUE")
+        try:
+            out[key.strip()] = float(val)
+        except ValueError:
+            raise ValueError(f"--init: {key.strip()} = {val!r} is not a number") from None
+    return out
+
+
+def fit_command(args) -> int:
+    """``jsnap fit SCENE.toml MEASURED.csv [--fit ...] [--init ...] [--out DIR] [--json]``."""
+    import sys
+
+    from jsnap._model import build
+    from jsnap._scene import SceneError, load_scene
+
+    try:
+        names = [s.strip() for s in args.fit.split(",") if s.strip()]
+        initial = _parse_init(args.init)
+        meas = load_measurement(args.measured, time_column=args.time_column, force_column=args.force_column)
+        scene = load_scene(args.scene)
+        model = build(scene, progress=not args.json)
+        quiet = args.json
+        fit = identify(model, meas, fit=names, initial=initial, max_iters=args.max_iters, progress=not quiet)
+    except (MeasurementError, SceneError, ValueError, FileNotFoundError) as err:
+        print(f"jsnap: error: {err}", file=sys.stderr)
+        return 2
+    summary = fit.write(args.out)
+    summary["scene"] = scene.source
+    Path(summary["outputs"]["json"]).write_text(json.dumps(summary, indent=2))
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(f"jsnap: fit of {', '.join(fit.names)} to {meas.source}:")
+        print(fit.summary())
+        print(f"  wrote {args.out}/fit.json, fit.csv, fit.png")
+    return 0
