@@ -410,7 +410,10 @@ def _lowest_modes(K, M, lu, k: int):
         _, vec = sla.eigh(K.toarray(), M.toarray(), subset_by_index=(0, k - 1))
         return vec
     op = spla.LinearOperator((n, n), matvec=lu.solve, dtype=np.float64)
-    _, vec = spla.eigsh(K, k=k, M=M, sigma=0.0, which="LM", OPinv=op, tol=1e-10)
+    # A fixed start vector: ARPACK's default is random, and the same scene must give the same
+    # basis (reproducible caches and results).
+    v0 = np.cos(np.arange(n) + 0.5)
+    _, vec = spla.eigsh(K, k=k, M=M, sigma=0.0, which="LM", OPinv=op, tol=1e-10, v0=v0)
     return vec
 
 
