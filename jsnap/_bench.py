@@ -102,6 +102,25 @@ def _stability(d):
     return f"E {Es[0] / 1e3:g}–{Es[-1] / 1e3:g} GPa, dt 1 ms: {verdicts}"
 
 
+def _reduction_speed(d):
+    h = d["headline"]
+    scan, call = h["light_scan_steps_per_second"], h["light_python_steps_per_second"]
+    return (
+        f"{h['full_dof']} dof → {' + '.join(map(str, h['orders']))}, light contact: scan {scan['full']:.0f} → "
+        f"{scan['reduced']:.0f} steps/s (×{h['scan_speedup']:.1f}; socket alone ×{h['socket_speedup']:.0f}), "
+        f"Python calls {call['reduced']:.0f} steps/s"
+    )
+
+
+def _reduction_accuracy(d):
+    parts = [
+        f"{k}: {' + '.join(map(str, v['orders']))}, RMSE {100 * v['rmse_float64']:.2f} %"
+        for k, v in d["headline"].items()
+    ]
+    b = min(d["coupling"]["rows"], key=lambda r: r["rmse_rel_peak"])
+    return "; ".join(parts) + f"; segmented at k_c {b['interface_stiffness']:.0e}: {b['rmse_rel_peak']:.1e}"
+
+
 def _generic(d):
     for key in ("summary", "headline"):
         if key in d:
@@ -118,7 +137,8 @@ BENCHMARKS = [
     Bench("contact_squeeze", "APGD against PGS on the symmetric squeeze", True, _contact_squeeze),
     Bench("fem_convergence", "cantilever tip deflection under refinement, P1/P2", True, _fem_convergence),
     Bench("stability", "nonlinear (SVK) integrators against linear PMI (the paper's Fig. 3)", True, _stability),
-    Bench("reduction_speed", "segmented / reduced models: accuracy and step rate", True, _generic),
+    Bench("reduction_speed", "segmented / reduced models: accuracy and step rate", True, _reduction_speed),
+    Bench("reduction_accuracy", "segmented / reduced against full: k_c, tolerance", True, _reduction_accuracy),
     Bench("identify", "parameter identification from a measured force", True, _generic),
 ]
 
