@@ -308,6 +308,7 @@ def main(argv=None) -> int:
         "--init", default=None, help="starting values overriding the scene's: E=1100,friction=0.15"
     )
     fit.add_argument("--max-iters", type=int, default=30, help="L-BFGS iterations at most (default 30)")
+    fit.add_argument("--smooth", type=float, default=3.0, help="Gaussian smoothing of both histories, steps")
     fit.add_argument("--time-column", default=None, help="name of the time column (s) if not a standard one")
     fit.add_argument("--force-column", default=None, help="name of the force column (N) if not a standard one")
     fit.add_argument("--out", default="jsnap-fit", help="output directory (default jsnap-fit)")
