@@ -12,13 +12,15 @@ damping). Full run: the default scene (P2 0.8 mm, 10 mm/s). ``--quick``: P2 1.5 
 1. Cost, at the scene's contact settings (500 iterations, tolerance 1e-6): for
    contact.gradient = implicit | unrolled and the step checkpointed or not, the compiled
    ``jax.value_and_grad``'s temporary memory (XLA's memory analysis), compile time and run time
-   (the faster of two runs; not run when it would need more than ``--memory-limit`` GB).
+   (the faster of two runs, one in the full run; not run when it would need more than
+   ``--memory-limit`` GB).
 2. Gradient check: the contact solve converged (tolerance 1e-11); implicit gradient against
-   central differences with the relative steps ``H`` (chosen where the difference quotient is
-   flat: the contact set is discrete, so a step too large straddles contact events and one too
-   small drowns in the solver's round-off; the quick run prints a step-size sweep).
+   central differences over a sweep of relative steps ``STEPS``. The contact set is discrete:
+   a step too large straddles contact events (a contact that starts or stops touching, the
+   gap term's kink), one too small drowns in the solver's round-off. The reference is the
+   plateau: the smaller of the two consecutive steps whose quotients agree best.
 3. The cost variants' gradients against that reference: how accurate each is at the default
-   tolerance.
+   tolerance. The quick run also times both ways with converged solves (tolerance 1e-11).
 
 Writes benchmarks/results/differentiation{,_quick}.{json,png}.
 """
@@ -26,6 +28,7 @@ Writes benchmarks/results/differentiation{,_quick}.{json,png}.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import platform
 import time
@@ -41,8 +44,8 @@ from jsnap import _sim
 
 OUT = Path(__file__).parent / "results"
 NAMES = ("E", "friction", "alpha", "beta")
-# Relative central-difference steps (see the module docstring and docs/differentiation.md).
-H = {"E": 1e-3, "friction": 1e-4, "alpha": 1e-2, "beta": 1e-3}
+# Relative central-difference steps swept in the gradient check (see the module docstring).
+STEPS = (1e-2, 1e-3, 1e-4, 1e-5, 1e-6)
 DAMPING = {"alpha": 20.0, "beta": 1e-5}
 TIGHT = {"contact.iterations": 20000, "contact.tolerance": 1e-11}
 
@@ -68,8 +71,8 @@ def _loss_fn(model):
     return loss, x0
 
 
-def cost(scene, gradient: str, checkpoint: bool, memory_limit_gb: float):
-    model = jsnap.build(scene.replace({"contact.gradient": gradient}))
+def cost(scene, gradient: str, checkpoint: bool, memory_limit_gb: float, repeats: int, tight: bool = False):
+    model = jsnap.build(scene.replace({"contact.gradient": gradient, **(TIGHT if tight else {})}))
     loss, x0 = _loss_fn(model)
     original = _sim._scan
     if not checkpoint:
@@ -84,6 +87,7 @@ def cost(scene, gradient: str, checkpoint: bool, memory_limit_gb: float):
         row = {
             "gradient": gradient,
             "checkpoint": checkpoint,
+            "tolerance": model.tolerance,
             "dof": model.n_dof,
             "steps": model.n_steps,
             "compile_s": t_compile,
@@ -95,7 +99,7 @@ def cost(scene, gradient: str, checkpoint: bool, memory_limit_gb: float):
             row["note"] = f"not run: needs {temp_gb:.1f} GB of temporaries (limit {memory_limit_gb} GB)"
         else:
             times = []
-            for _ in range(2):
+            for _ in range(repeats):
                 t0 = time.perf_counter()
                 v, g = compiled(x0)
                 jax.block_until_ready(g)
@@ -114,7 +118,7 @@ def cost(scene, gradient: str, checkpoint: bool, memory_limit_gb: float):
     return row
 
 
-def check(scene, sweep: bool):
+def check(scene):
     model = jsnap.build(scene.replace(TIGHT))
     loss, x0 = _loss_fn(model)
     t0 = time.perf_counter()
@@ -123,21 +127,25 @@ def check(scene, sweep: bool):
     f = jax.jit(loss)
     out = {"loss": float(v), "grad_seconds_with_compile": t_grad, "params": {}}
     for i, n in enumerate(NAMES):
-        steps = (1e-2, 1e-3, 1e-4, 1e-5) if sweep else (H[n],)
         fds = {}
-        for h in steps:
+        for h in STEPS:
             d = h * float(x0[i])
             xp = list(x0)
             xm = list(x0)
             xp[i] = x0[i] + d
             xm[i] = x0[i] - d
             fds[h] = float((f(tuple(xp)) - f(tuple(xm))) / (2 * d))
-        fd = fds[H[n]]
+        # The plateau: the two consecutive steps whose quotients agree best; the smaller one is
+        # the reference (chosen from the differences alone, not from the gradient).
+        pairs = list(itertools.pairwise(STEPS))
+        h_big, h_ref = min(pairs, key=lambda p: abs(fds[p[1]] / fds[p[0]] - 1))
+        fd = fds[h_ref]
         out["params"][n] = {
             "value": float(x0[i]),
             "grad": float(g[i]),
             "fd": fd,
-            "fd_step_rel": H[n],
+            "fd_step_rel": h_ref,
+            "plateau_spread": abs(fds[h_ref] / fds[h_big] - 1),
             "rel_error": abs(float(g[i]) / fd - 1),
             "sweep": {f"{h:g}": {"fd": val, "rel_error": abs(float(g[i]) / val - 1)} for h, val in fds.items()},
         }
@@ -158,16 +166,22 @@ def main(argv=None):
     machine = f"{platform.machine()}, {platform.processor() or platform.system()}, {jax.devices()[0].platform}"
     stem = "differentiation_quick" if a.quick else "differentiation"
     OUT.mkdir(exist_ok=True)
-    result = {"machine": machine, "changes": changes, "damping": DAMPING, "fd_steps": H, "tight": TIGHT}
+    result = {"machine": machine, "changes": changes, "damping": DAMPING, "fd_steps": STEPS, "tight": TIGHT}
     path = OUT / f"{stem}.json"
     if a.skip_cost and path.exists():
         result["cost"] = json.loads(path.read_text()).get("cost", [])
     else:
         result["cost"] = [
-            cost(scene, g, c, a.memory_limit) for g in ("implicit", "unrolled") for c in (True, False)
+            cost(scene, g, c, a.memory_limit, 2 if a.quick else 1)
+            for g in ("implicit", "unrolled")
+            for c in (True, False)
         ]
+        if a.quick:  # converged solves: what an accurate gradient costs each way
+            result["cost"] += [
+                cost(scene, g, True, a.memory_limit, 1, tight=True) for g in ("implicit", "unrolled")
+            ]
     path.write_text(json.dumps(result, indent=2))
-    result["check"] = check(scene, sweep=a.quick)
+    result["check"] = check(scene)
     ref = {n: p["fd"] for n, p in result["check"]["params"].items()}
     for row in result["cost"]:
         if row.get("grad"):
@@ -183,7 +197,11 @@ def plot(result, path):
     import matplotlib.pyplot as plt
 
     rows = result["cost"]
-    labels = [f"{r['gradient']}\n{'checkpoint' if r['checkpoint'] else 'no checkpoint'}" for r in rows]
+    labels = [
+        f"{r['gradient']}\n{'checkpoint' if r['checkpoint'] else 'no checkpoint'}"
+        + (f"\ntol {r['tolerance']:g}" if r.get("tolerance", 1e-6) < 1e-6 else "")
+        for r in rows
+    ]
     fig, ax = plt.subplots(1, 3, figsize=(14, 4.8))
     x = np.arange(len(rows))
     ax[0].bar(x, [r["temp_GB"] for r in rows], color="tab:blue")
@@ -219,7 +237,7 @@ def plot(result, path):
                 np.arange(len(names)) - 0.4 + w / 2 + k * w,
                 [max(e[n], 1e-16) for n in names],
                 w,
-                label=lab.replace("\n", ", ") + ", tol 1e-6",
+                label=lab.replace("\n", ", ") + ("" if "tol" in lab else ", tol 1e-6"),
             )
             k += 1
     ax[2].axhline(1e-3, color="k", ls="--", lw=0.8)
