@@ -6,16 +6,15 @@ The "measurement" comes from a finer *full* model (P2 0.8 mm, the default scene'
 true parameters (ABS, E = 2200 MPa, μ = 0.3), pushed at 20 mm/s and sampled at its 1 kHz steps,
 plus independent Gaussian noise of 5 % of the peak force on every sample. The fitted model is
 the *reduced* model (``solver.method = "reduced"``, passive balanced reduction) on a different,
-coarser mesh (P2 0.9 mm); one more fit uses a reduced model on a P2 1.0 mm mesh, whose larger
-discretisation gap shows up as bias. Each fit starts a factor 2 away from the truth in both parameters and
-runs ``jsnap.identify`` (L-BFGS on log-parameters, Gauss–Newton standard errors); its wall time
+coarser mesh (P2 0.9 mm). Each fit starts a factor 2 away from the truth in both parameters
+(all four corners: E/2 or 2E with μ/2 or 2μ) and runs ``jsnap.identify`` (a seed search by
+forward rollouts, then L-BFGS on log-parameters; Gauss–Newton standard errors); its wall time
 includes compilation, not the reduced model's build (a cached, one-off cost, reported apart).
+The starts with 2μ = 0.6 lie in this hook's stick–slip regime, where the force history is rough
+(docs/differentiation.md).
 
-Starts: (E/2, μ/2) and (2E, μ/2); also (E/2, 2μ), which starts in this hook's stick–slip regime
-(μ ≳ 0.45: the force history is rough, and gradients through stick–slip are dominated by the
-exponential sensitivity of the discrete contact sequence; docs/differentiation.md).
-
-``--quick``: truth P2 1.2 mm full, fitted reduced P2 1.5 mm, one start.
+``--quick`` (keeps the script from rotting; it shows nothing about accuracy): truth full P2
+1.5 mm, fitted reduced P2 1.5 mm, the first 60 ms, one start, at most 4 iterations.
 Writes benchmarks/results/identify{,_quick}.{json,png}.
 """
 
@@ -23,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import time
 from pathlib import Path
@@ -43,11 +43,10 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="coarser meshes, one start")
     ap.add_argument("--seed", type=int, default=0)
     a = ap.parse_args(argv)
-    truth_mesh = 1.2 if a.quick else 0.8
+    truth_mesh = 1.5 if a.quick else 0.8
+    max_iters = 4 if a.quick else 30
     # (fitted model's mesh, start factors on E and friction)
-    plan = (
-        [(1.5, 0.5, 0.5)] if a.quick else [(0.9, 0.5, 0.5), (0.9, 2.0, 0.5), (0.9, 0.5, 2.0), (1.0, 0.5, 0.5)]
-    )
+    plan = [(1.5, 0.5, 0.5)] if a.quick else [(0.9, fe, fm) for fe in (0.5, 2.0) for fm in (0.5, 2.0)]
     common = {"solver.dtype": "float64", "motion.speed": SPEED}
 
     t0 = time.perf_counter()
@@ -55,7 +54,7 @@ def main(argv=None):
         {**common, "solver.mesh_size": truth_mesh, "solver.method": "full"}
     )
     truth = jsnap.build(truth_scene)
-    res = jsnap.rollout(truth)
+    res = jsnap.rollout(truth, controls=truth.trajectory()[1:61] if a.quick else None)
     F_true = np.asarray(res.insertion_force)
     t = np.asarray(res.t)
     t_truth = time.perf_counter() - t0
@@ -71,7 +70,10 @@ def main(argv=None):
         model = jsnap.build(scene)
         t_build = time.perf_counter() - t0
         # The discretisation gap alone: the fitted model at the true parameters against the truth.
-        gap = float(np.sqrt(np.mean((np.asarray(jsnap.rollout(model).insertion_force) - F_true) ** 2)))
+        F_gap = np.asarray(
+            jsnap.rollout(model, controls=model.trajectory()[1 : F_true.size + 1]).insertion_force
+        )
+        gap = float(np.sqrt(np.mean((F_gap - F_true) ** 2)))
         models[fit_mesh] = (model, t_build, gap)
         print(f"fit model: reduced, P2 {fit_mesh} mm, {model.n_dof} states, build {t_build:.1f} s", flush=True)
 
@@ -80,7 +82,9 @@ def main(argv=None):
     for fit_mesh, fe, fm in plan:
         model, t_build, gap = models[fit_mesh]
         init = {"E": fe * TRUE["E"], "friction": fm * TRUE["friction"]}
-        fit = jsnap.identify(model, meas, fit=("E", "friction"), initial=init, progress=True)
+        fit = jsnap.identify(
+            model, meas, fit=("E", "friction"), initial=init, max_iters=max_iters, progress=True
+        )
         d = fit.to_dict()
         d["fit_model"] = {
             "model": f"reduced, P2 {fit_mesh} mm",
@@ -97,9 +101,20 @@ def main(argv=None):
         print(fit.summary(), flush=True)
         print({k: f"{100 * v:+.2f} %" for k, v in d["error"].items()}, flush=True)
 
-    machine = f"{platform.machine()}, {platform.processor() or platform.system()}, {jax.devices()[0].platform}"
+    load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
+    machine = f"{platform.machine()}, {os.cpu_count()} cores, {jax.devices()[0].platform}, load average {load}"
+    errors = {k: max(abs(r["error"][k]) for r in runs) for k in TRUE}
+    seconds = [r["seconds"] for r in runs]
     result = {
         "machine": machine,
+        "headline": {
+            "starts": len(runs),
+            "all_within_3_percent": all(r["within_3_percent"] for r in runs),
+            "max_abs_error": errors,
+            "seconds_median": float(np.median(seconds)),
+            "seconds_max": float(np.max(seconds)),
+            "fit_model": runs[0]["fit_model"]["model"],
+        },
         "truth": {"model": f"full P2 {truth_mesh} mm", "dof": truth.n_dof, **TRUE, "seconds": t_truth},
         "speed_mm_s": SPEED,
         "noise": {"relative_to_peak": NOISE, "sigma_N": sigma, "seed": a.seed},

@@ -17,10 +17,12 @@ one-step jumps that contact events make in the simulated history, see :func:`smo
 
 - Variables: logarithms of the positive parameters (E, friction, alpha, beta: positive by
   construction); the time shift and the plug offset in units of a step's duration and travel.
+- Seed: a global start from forward rollouts only: E by its closed-form force scale (the force
+  is proportional to E at fixed friction), friction on a log grid over a factor 4 either way
+  of its start (:func:`_seed`).
 - Optimiser: L-BFGS (``optax.scale_by_lbfgs``) with Armijo backtracking and a cap on the step,
   in variables whitened by the Gauss–Newton metric ``JᵀJ`` (E and friction both scale the
   force, so the valley is long and narrow; whitened, the first step is the Gauss–Newton step).
-  E is fitted alone for a few iterations first (the force scale), then everything.
 - Gradients: ``jax.grad`` of the whole rollout, through contact (implicit differentiation of the
   contact solve, ``_implicit``).
 - Uncertainty: the Gauss–Newton (Laplace) covariance from ``J = ∂F/∂θ`` (forward mode, one
@@ -249,6 +251,7 @@ class FitResult:
         and differentiated rollouts (gradients and Jacobians);   seconds: wall time
         (compilation included).
         converged: the step fell below ``xtol`` (not just ``max_iters`` reached).
+        seeded: values after the seed search (None without it);   rollouts: its forward runs.
     """
 
     names: tuple[str, ...]
@@ -270,6 +273,8 @@ class FitResult:
     seconds: float = 0.0
     converged: bool = False
     source: str = ""
+    seeded: dict | None = None
+    rollouts: int = 0
 
     def to_dict(self) -> dict:
         """JSON-serialisable summary."""
@@ -290,6 +295,8 @@ class FitResult:
             "iterations": self.iterations,
             "gradient_evaluations": self.evaluations,
             "converged": self.converged,
+            "seeded": self.seeded,
+            "seed_rollouts": self.rollouts,
             "seconds": self.seconds,
             "loss_history": [float(v) for v in self.loss_history],
         }
@@ -446,8 +453,63 @@ def _force_and_jacobian(prob: _Problem, theta):
     return prob.force(theta), jax.jacfwd(prob.force)(theta)
 
 
-# L-BFGS iterations on E alone before the joint fit (see identify).
+# L-BFGS iterations on E alone before the joint fit when there is no seed search (see identify).
 _SCALE_ITERS = 4
+# The seed search tries friction at these factors of its starting value (a factor 4 either way;
+# 12 points, 29 % apart: the grid does not contain the factors 1/2 and 2 of the benchmarks).
+_SEED_FACTORS = np.geomspace(0.25, 4.0, 12)
+
+
+@eqx.filter_jit
+def _force(prob: _Problem, theta):
+    return prob.force(theta)
+
+
+def _seed(obj: _Objective, theta, names, progress: bool):
+    """A global start for the local fit, from forward rollouts only.
+
+    Quasi-static linear elasticity with a kinematic plug makes the contact forces proportional
+    to E at a fixed friction coefficient (the displacements are set by the geometry; inertia
+    and damping break it only slightly), so the best E for a given history is a closed-form
+    scale ``s = <G F, G F_meas> / <G F, G F>``. When friction is fitted too, it is tried on a
+    log grid ``_SEED_FACTORS`` × its start, each with its best E, and the best pair kept.
+
+    Why: the loss is not convex in friction. A hook pushed with high friction sticks and slips,
+    its force history is rough and its gradients are dominated by the discrete contact sequence
+    (docs/differentiation.md), and E and friction trade along a long valley (both scale the
+    force). From a start far off, a gradient method can stall there; the grid puts the local fit
+    in the right valley, and the local fit (L-BFGS with exact gradients) does the rest.
+
+    Returns ``(theta, rollouts, seeded values or None)``.
+    """
+    i_E = names.index("E") if "E" in names else None
+    i_mu = names.index("friction") if "friction" in names else None
+    if i_E is None and i_mu is None:
+        return theta, 0, None
+    G = np.asarray(obj.filter)
+    target = G @ np.asarray(obj.target)
+    scale2 = float(obj.scale) ** 2 * float(obj.count)
+    shifts = [0.0] if i_mu is None else np.log(_SEED_FACTORS)
+    candidates = [theta if i_mu is None else theta.at[i_mu].add(d) for d in shifts]
+    if progress:
+        from tqdm.auto import tqdm
+
+        candidates = tqdm(candidates, desc="jsnap fit: seed", unit="rollout", leave=False)
+    best, best_loss = theta, math.inf
+    for th in candidates:
+        GF = G @ np.asarray(_force(obj.prob, th))
+        if i_E is not None:
+            s = float(GF @ target) / float(GF @ GF) if float(GF @ GF) > 0 else 0.0
+            if not (math.isfinite(s) and s > 0):
+                continue
+            th = th.at[i_E].add(math.log(s))
+            GF = s * GF
+        r = GF - target
+        loss = 0.5 * float(r @ r) / scale2
+        if math.isfinite(loss) and loss < best_loss:
+            best, best_loss = th, loss
+    values = {k: float(v) for k, v in obj.prob.unpack(best).items()}
+    return best, len(shifts), values
 
 
 class _Run:
@@ -593,6 +655,7 @@ def identify(
     xtol: float = 1e-4,
     max_step: float = 0.5,
     smooth: float = 3.0,
+    seed: bool = True,
     progress: bool = True,
 ) -> FitResult:
     """Fit parameters of ``model`` to a measured insertion-force history.
@@ -615,6 +678,10 @@ def identify(
             simulation steps (see :func:`smoothing_filter`; 0: raw samples).
         xtol: stop when no fit variable (log of a positive parameter; shift/offset in steps)
             changes by more than this in an iteration.
+        seed: start the local fit from a global seed search (forward rollouts only): E by its
+            closed-form force scale and, when fitted, friction on a log grid over a factor 4
+            either way of its start (:func:`_seed`). Without it, E is fitted alone for a few
+            iterations first.
         progress: show a tqdm progress bar.
 
     Returns:
@@ -676,20 +743,23 @@ def identify(
     )
 
     theta = jnp.asarray(theta0)
-    (value, F0), grad = _value_and_grad(obj, theta)
-    F0 = np.asarray(F0)
+    F0 = np.asarray(_force(prob, theta))
     _check_force_scale(meas, float(np.max(np.abs(F0[mask]))), float(np.max(np.abs(F_meas[mask]))))
+    seeded, n_seed = None, 0
+    if seed:
+        theta, n_seed, seeded = _seed(obj, theta, names, progress)
+    (value, _), grad = _value_and_grad(obj, theta)
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=max_iters, desc="jsnap fit", unit="it")
     run = _Run(obj, mask, value, grad, bar, max_step, xtol)
-    # The force scale first: E alone (a few iterations), then everything. E and friction both
-    # scale the force (F ≈ E w(μ) on the ramp); fitted together from far off, the first steps
-    # trade one for the other along that valley, and may carry friction into the stick-slip
-    # regime where the force history is rough (docs/differentiation.md).
-    if "E" in names and len(names) > 1:
+    # Without a seed: the force scale first, E alone (a few iterations), then everything. E and
+    # friction both scale the force (F ≈ E w(μ) on the ramp); fitted together from far off, the
+    # first steps trade one for the other along that valley, and may carry friction into the
+    # stick-slip regime where the force history is rough (docs/differentiation.md).
+    if "E" in names and len(names) > 1 and seeded is None:
         theta = run.minimise(theta, [names.index("E")], min(_SCALE_ITERS, max_iters))
     theta = run.minimise(theta, list(range(len(names))), max_iters - run.iterations)
     if bar is not None:
@@ -747,6 +817,8 @@ def identify(
         loss_history=history,
         iterations=it,
         evaluations=evaluations,
+        seeded=seeded,
+        rollouts=n_seed,
         seconds=time.perf_counter() - t0,
         converged=converged,
         source=meas.source,
