@@ -121,6 +121,29 @@ def _reduction_accuracy(d):
     return "; ".join(parts) + f"; segmented at k_c {b['interface_stiffness']:.0e}: {b['rmse_rel_peak']:.1e}"
 
 
+def _frequency(d):
+    h = d["headline"]
+    parts, names = [], []
+    for mesh, rates in h["scan_steps_per_second"].items():
+        names = sorted(rates)
+        parts.append(f"{h['full_dof'][mesh]} dof: " + " / ".join(f"{rates[k]:.3g}" for k in names))
+    models = " / ".join(names)
+    return f"scan steps/s, Models {models} ({h['element']}, SDF {h['sdf_models_2_4']}): " + "; ".join(parts)
+
+
+def _throughput(d):
+    h = d["headline"]
+    out = (
+        f"{h['device']}, {h['full_dof']} → {h['dof']} dof: vmap {h['batch_1_scene_steps_per_second']:.0f} "
+        f"scene-steps/s at batch 1, best {h['best_scene_steps_per_second']:.0f} at {h['best_batch']}"
+    )
+    if "single_scene_no_vmap_steps_per_second" in h:
+        out += f" (one scene, no vmap: {h['single_scene_no_vmap_steps_per_second']:.0f})"
+    if "iterations_100_best_scene_steps_per_second" in h:
+        out += f"; 100 iterations: {h['iterations_100_best_scene_steps_per_second']:.0f}"
+    return out
+
+
 def _generic(d):
     for key in ("summary", "headline"):
         if key in d:
@@ -140,6 +163,8 @@ BENCHMARKS = [
     Bench("reduction_speed", "segmented / reduced models: accuracy and step rate", True, _reduction_speed),
     Bench("reduction_accuracy", "segmented / reduced against full: k_c, tolerance", True, _reduction_accuracy),
     Bench("identify", "parameter identification from a measured force", True, _generic),
+    Bench("frequency", "steps/s of Models 1-4, ~660 and ~1300 dof (the paper's Fig. 4)", True, _frequency),
+    Bench("throughput", "batched (vmap) scene-steps/s of the reduced model vs batch size", True, _throughput),
 ]
 
 

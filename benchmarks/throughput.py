@@ -1,0 +1,335 @@
+"""Batched throughput of the reduced model: ``jax.vmap`` of a rollout over a batch of scenes
+that differ in Young's modulus, friction and the plug's lateral offset, in scene-steps per
+second against the batch size.
+
+    python benchmarks/throughput.py [--quick] [--steps 20] [--max-batch 512]
+
+The model is the paper's Model 4 on the ~1300-dof mesh of ``benchmarks/frequency.py``: the
+default scene with P2 elements at ``solver.mesh_size`` 1.7 mm (1218 free dofs), segmented and
+reduced (``solver.method = "reduced"``), neural SDF, float32. Lane ``i`` of a batch has its own
+E (1800-2600 MPa), friction coefficient (0.1-0.5) and plug offset across the hook's width
+(y, -0.4 to +0.4 mm: the 5 mm plug still spans the 4 mm hook, but the contact lines move against
+the candidate points); the lanes of a batch of B are the first B of one fixed random draw of 512.
+
+Batching: ``jsnap.rollout`` takes one parameter set, so the script vmaps its own small rollout:
+``jsnap.prepare`` is vmapped over a batched :class:`jsnap.Params` (outside the timings, like the
+other benchmarks), and a ``lax.scan`` of ``jsnap.step`` over the first ``--steps`` steps of the
+scene's motion (contact from the second step on) is vmapped over the prepared operators and the
+plug offsets, and jitted. Under ``vmap`` the contact solver's per-lane early exit (a
+``lax.cond`` that freezes a converged lane) becomes a select: every lane runs the solver's
+iteration cap (``contact.iterations``, 500 by default) and both branches of the step's
+predict-correct ``cond``. So batching pays a fixed price that a single scene mostly avoids; the
+second series, ``contact.iterations = 100``, measures how much of it is the cap. A single scene
+without ``vmap`` (early exit working) is timed as the reference.
+
+Timings: for every batch size the first call compiles and runs; the steady time is the median
+of three further calls and the compile time is the first call minus it. The batch doubles from 1
+until ``--max-batch``, until two doublings in a row gain less than 5 % (saturated; checked from
+a batch of 16 on), or until a call would take more than ``--max-call`` seconds. CPU numbers and GPU
+numbers are kept apart (``results[platform]``); a run on one platform keeps the other's, and
+the top-level ``headline`` is the CPU one (a GPU's is also ``headline_gpu``).
+Writes benchmarks/results/throughput{,_quick}.{json,png}.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jsnap
+from jsnap._sim import _cast, init_state, step
+
+OUT = Path(__file__).parent / "results"
+SCENE = {"solver.element": "P2", "solver.mesh_size": 1.7, "solver.method": "reduced", "solver.sdf": "neural"}
+POOL = 512
+SERIES = {"default (500 iterations)": {}, "contact.iterations = 100": {"contact.iterations": 100}}
+E_RANGE, MU_RANGE, OFFSET_RANGE = (1800.0, 2600.0), (0.1, 0.5), (-0.4, 0.4)  # MPa, -, mm
+
+
+def lanes(model, n: int, seed: int = 0):
+    """Batched Params (n,) and plug offsets (n, 3) in mm: lane i of a fixed random draw."""
+    rng = np.random.default_rng(seed)
+    E = rng.uniform(*E_RANGE, POOL)[:n]
+    mu = rng.uniform(*MU_RANGE, POOL)[:n]
+    dx = rng.uniform(*OFFSET_RANGE, POOL)[:n]
+    p = model.params
+    params = jsnap.Params(
+        E=jnp.asarray(E),
+        nu=jnp.full(n, p.nu),
+        rho=jnp.full(n, p.rho),
+        alpha=jnp.full(n, p.alpha),
+        beta=jnp.full(n, p.beta),
+        friction=jnp.asarray(mu),
+    )
+    offsets = np.zeros((n, 3))
+    offsets[:, 1] = dx
+    return params, offsets
+
+
+def scene_rollout(model, n_steps: int):
+    """``(f, dyn)``: ``f(dyn, prepared, offset)`` is a ``lax.scan`` of ``jsnap.step`` over the
+    first ``n_steps`` steps of the scene's motion for one scene, its plug shifted by ``offset``
+    (3,) mm; it returns the insertion force (N), solver iterations and residual, each (steps,).
+    ``dyn`` is the model's arrays in the scene's dtype (passed as an argument, not baked into
+    the compiled program); ``prepared`` must be cast to that dtype too."""
+    dtype = jnp.dtype(model.dtype)
+    dyn, static = eqx.partition(_cast(model, dtype), eqx.is_array)
+    controls = jnp.asarray(model.trajectory()[1 : 1 + n_steps], dtype)
+    state0 = init_state(model, dtype)
+    T = jnp.asarray(model.dt, dtype)
+
+    def f(dyn, prepared, offset):
+        m = eqx.combine(dyn, static)
+        offset = offset.astype(dtype)
+        start = state0.plug + offset
+        # As in jsnap.rollout, the plug starts moving with the drive.
+        s = eqx.tree_at(
+            lambda s: (s.plug, s.target, s.plug_vel), state0, (start, start, (controls[0] - state0.plug) / T)
+        )
+
+        def body(s, c):
+            s, out = step(m, prepared, s, c + offset)
+            return s, (out.insertion_force, out.iterations, out.residual)
+
+        return jax.lax.scan(body, s, controls)[1]
+
+    return f, dyn
+
+
+def prepare_batch(model, params):
+    """``jsnap.prepare`` vmapped over batched Params, cast to the scene's dtype."""
+    prepared = jax.jit(jax.vmap(lambda p: jsnap.prepare(model, p)))(params)
+    return _cast(prepared, jnp.dtype(model.dtype))
+
+
+def timed(fn, *args, runs: int = 3):
+    """(outputs, first call seconds, median of ``runs`` further calls in seconds)."""
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(fn(*args))
+    first = time.perf_counter() - t0
+    times = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t0)
+    return out, first, float(np.median(times))
+
+
+def sweep(model, n_steps: int, batches, saturate: bool, max_call: float = np.inf) -> list[dict]:
+    f, dyn = scene_rollout(model, n_steps)
+    batched = jax.jit(jax.vmap(f, in_axes=(None, 0, 0)))
+    rows, rates = [], []
+    for B in batches:
+        params, offsets = lanes(model, B)
+        prepared = prepare_batch(model, params)
+        (F, it, res), first, steady = timed(batched, dyn, prepared, jnp.asarray(offsets))
+        rows.append(
+            {
+                "batch": B,
+                "steps": n_steps,
+                "seconds": steady,
+                "compile_seconds": first - steady,
+                "scene_steps_per_second": B * n_steps / steady,
+                "us_per_scene_step": 1e6 * steady / (B * n_steps),
+                "iterations_mean": float(np.mean(it)),
+                "residual_max": float(np.max(res)),
+                "peak_N_lanes": [float(x) for x in np.max(np.asarray(F), axis=1)[:8]],
+                "insertion_force_lane0": np.asarray(F[0], np.float64).tolist(),
+            }
+        )
+        print({k: v for k, v in rows[-1].items() if k != "insertion_force_lane0"}, flush=True)
+        rates.append(rows[-1]["scene_steps_per_second"])
+        flat = len(rates) >= 3 and rates[-1] < 1.05 * rates[-2] and rates[-2] < 1.05 * rates[-3]
+        if saturate and B >= 16 and flat:
+            rows[-1]["stopped"] = "saturated"
+            break
+        if 2 * steady > max_call:  # the next batch would take too long per call
+            rows[-1]["stopped"] = f"next call over {max_call:g} s"
+            break
+    return rows
+
+
+def single(model, n_steps: int) -> dict:
+    """One scene (lane 0), jitted without vmap: the solver's early exit works."""
+    f, dyn = scene_rollout(model, n_steps)
+    params, offsets = lanes(model, 1)
+    prepared = jax.tree_util.tree_map(lambda a: a[0], prepare_batch(model, params))
+    (F, it, _), first, steady = timed(jax.jit(f), dyn, prepared, jnp.asarray(offsets[0]))
+    return {
+        "batch": 1,
+        "vmap": False,
+        "steps": n_steps,
+        "seconds": steady,
+        "compile_seconds": first - steady,
+        "scene_steps_per_second": n_steps / steady,
+        "iterations_mean": float(np.mean(it)),
+        "insertion_force_lane0": np.asarray(F, np.float64).tolist(),
+    }
+
+
+def code_version() -> dict:
+    """The commit the numbers were taken at and the library files modified in the working tree."""
+    import subprocess
+
+    def git(*args):
+        try:
+            return subprocess.run(["git", *args], capture_output=True, text=True, cwd=OUT.parent).stdout
+        except OSError:
+            return ""
+
+    return {
+        "commit": git("rev-parse", "HEAD").strip(),
+        "modified": git("status", "--porcelain", "--", "../jsnap").splitlines(),
+    }
+
+
+def machine(load) -> str:
+    d = jax.devices()[0]
+    return (
+        f"{platform.machine()} {platform.system()}, {os.cpu_count()} CPU cores, jax {d.platform} "
+        f"({d.device_kind}), load average {min(load):.1f}-{max(load):.1f}"
+    )
+
+
+def chart(result, title, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(13, 4.8))
+    for (name, rows), color in zip(result["series"].items(), ("C0", "C1"), strict=False):
+        B = [r["batch"] for r in rows]
+        ax.loglog(B, [r["scene_steps_per_second"] for r in rows], "o-", color=color, label=f"vmap, {name}")
+        bx.semilogx(B, [r["compile_seconds"] for r in rows], "o-", color=color, label=name)
+    ref = result.get("single_scene")
+    if ref:
+        ax.axhline(ref["scene_steps_per_second"], color="C2", ls="--", label="one scene, no vmap (early exit)")
+    ax.set_xscale("log", base=2)
+    bx.set_xscale("log", base=2)
+    ax.set_xlabel("batch size (scenes)")
+    ax.set_ylabel("throughput (scene-steps/s)")
+    ax.set_title("steady state, median of 3 calls", fontsize=10)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    bx.set_xlabel("batch size (scenes)")
+    bx.set_ylabel("compile time (s)")
+    bx.set_title("compile time: first call minus a steady call", fontsize=10)
+    bx.grid(alpha=0.3, which="both")
+    bx.legend(fontsize=8)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="batches 1 and 4, 5 steps, default series only")
+    ap.add_argument("--steps", type=int, default=20, help="steps of the motion per rollout")
+    ap.add_argument("--max-batch", type=int, default=POOL)
+    ap.add_argument("--max-call", type=float, default=30.0, help="seconds a timed call may take")
+    a = ap.parse_args(argv)
+    t_start = time.perf_counter()
+    n_steps = 5 if a.quick else a.steps
+    if a.quick:
+        batches, series = [1, 4], dict(list(SERIES.items())[:1])
+    else:
+        batches = [2**k for k in range(20) if 2**k <= min(a.max_batch, POOL)]
+        series = SERIES
+    load = [os.getloadavg()[0]]
+    result = {"series": {}}
+    for name, changes in series.items():
+        model = jsnap.build(jsnap.load_scene().replace({**SCENE, **changes}))
+        result["series"][name] = sweep(model, n_steps, batches, saturate=not a.quick, max_call=a.max_call)
+        load.append(os.getloadavg()[0])
+        if not changes:
+            result["full_dof"], result["dof"] = int(model.host.free.size), model.n_dof
+            result["orders"] = [int(k) for k in model.socket.orders]
+            if not a.quick:
+                result["single_scene"] = single(model, n_steps)
+                print({k: v for k, v in result["single_scene"].items() if k != "insertion_force_lane0"})
+    load.append(os.getloadavg()[0])
+    dev = jax.devices()[0]
+    result["machine"] = machine(load)
+    result["device"] = f"{dev.platform} ({dev.device_kind})"
+
+    names = list(result["series"])
+    main_rows = result["series"][names[0]]
+    best = max(main_rows, key=lambda r: r["scene_steps_per_second"])
+    headline = {
+        "device": result["device"],
+        "full_dof": result["full_dof"],
+        "dof": result["dof"],
+        "steps": n_steps,
+        "batch_1_scene_steps_per_second": main_rows[0]["scene_steps_per_second"],
+        "best_batch": best["batch"],
+        "best_scene_steps_per_second": best["scene_steps_per_second"],
+        "max_batch": main_rows[-1]["batch"],
+    }
+    if "single_scene" in result:
+        headline["single_scene_no_vmap_steps_per_second"] = result["single_scene"]["scene_steps_per_second"]
+    if len(names) > 1:
+        alt = result["series"][names[1]]
+        best_alt = max(alt, key=lambda r: r["scene_steps_per_second"])
+        headline["iterations_100_best_batch"] = best_alt["batch"]
+        headline["iterations_100_best_scene_steps_per_second"] = best_alt["scene_steps_per_second"]
+        # What the lower cap costs in accuracy on lane 0 (same parameters in both series).
+        F0 = np.asarray(main_rows[0]["insertion_force_lane0"])
+        F1 = np.asarray(alt[0]["insertion_force_lane0"])
+        headline["iterations_100_force_rmse_rel_peak_lane0"] = float(
+            np.sqrt(np.mean((F1 - F0) ** 2)) / max(np.abs(F0).max(), 1e-12)
+        )
+    result["headline"] = headline
+    result["wall_seconds"] = time.perf_counter() - t_start
+
+    stem = "throughput_quick" if a.quick else "throughput"
+    OUT.mkdir(exist_ok=True)
+    path = OUT / f"{stem}.json"
+    results = {}
+    if path.is_file():  # keep the other platforms' numbers
+        try:
+            results = json.loads(path.read_text()).get("results", {})
+        except (json.JSONDecodeError, AttributeError):
+            results = {}
+    result["code"] = code_version()
+    results[dev.platform] = result
+    # The top-level headline is the CPU one (this project's machine) when there is one; each
+    # platform's own headline stays in results[platform] and a GPU's is also "headline_gpu".
+    top = results.get("cpu", result)["headline"]
+    doc = {
+        "what": "batched rollout throughput of the reduced model (jax.vmap over scenes)",
+        "scene": SCENE,
+        "lanes": {"E_MPa": E_RANGE, "friction": MU_RANGE, "plug_offset_y_mm": OFFSET_RANGE, "pool": POOL},
+        "note": (
+            "Under vmap the contact solver's per-lane early exit (lax.cond freezing a converged lane) "
+            "becomes a select: every lane runs contact.iterations iterations, and every branch of the "
+            "step's conds and switches (predict-correct pass, solver size) runs. "
+            "The single_scene row is one scene jitted without vmap "
+            "(early exit working)."
+        ),
+        "headline": top,
+        **({"headline_gpu": results["gpu"]["headline"]} if "gpu" in results else {}),
+        "results": results,
+    }
+    path.write_text(json.dumps(doc, indent=1))
+    title = (
+        f"Batched throughput, Model 4 (reduced {result['full_dof']} → {result['dof']} dof, neural SDF, "
+        f"float32), {n_steps} steps of the insertion per rollout\n"
+        f"device: {result['device']}; {result['machine']}"
+    )
+    chart(result, title, OUT / f"{stem}.png")
+    print(f"wrote {path} in {result['wall_seconds']:.0f} s", flush=True)
+
+
+if __name__ == "__main__":
+    main()
