@@ -136,6 +136,22 @@ def project_cone(gamma, mu):
     return jnp.concatenate([out_n[..., None], out_t], axis=-1)
 
 
+def _project_cone_split(n, t1, t2, mu):
+    """``project_cone`` on the components given apart (each (C,)): the same arithmetic, all of
+    it elementwise (no reduction over a length-3 axis), for the solvers' inner loops."""
+    sq = t1 * t1 + t2 * t2
+    ok = sq > 1e-30  # as safe_norm
+    nt = jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
+    inside = nt <= mu * n
+    to_apex = mu * nt <= -n
+    n_surf = (n + mu * nt) / (1.0 + mu * mu)
+    scale = mu * n_surf / jnp.where(nt > 0, nt, 1.0)
+    out_n = jnp.where(inside, n, jnp.where(to_apex, 0.0, n_surf))
+    out_t1 = jnp.where(inside, t1, jnp.where(to_apex, 0.0, scale * t1))
+    out_t2 = jnp.where(inside, t2, jnp.where(to_apex, 0.0, scale * t2))
+    return out_n, out_t1, out_t2
+
+
 # ----------------------------------------------------------------------------------------------
 # Shared pieces
 
@@ -240,6 +256,21 @@ def _frozen_scan(step, init, done, trace, max_iters):
     return s, tr
 
 
+def _while(step, init, done, max_iters):
+    """``_frozen_scan`` without the trace, as a ``lax.while_loop``: the same iterates and the
+    same final carry (it stops where the scan freezes), at a fraction of the cost per iteration
+    (no ``lax.cond`` and no carry copies), but not reverse-differentiable. For solves whose
+    derivatives are taken implicitly (``_implicit``)."""
+
+    def cond(c):
+        return (c[0] < max_iters) & ~done(c[1])
+
+    def body(c):
+        return c[0] + 1, step(c[1])
+
+    return jax.lax.while_loop(cond, body, (jnp.asarray(0, jnp.int32), init))[1]
+
+
 def _mask_gamma(gamma, m3):
     return jnp.where(m3 > 0, gamma, 0.0)
 
@@ -339,7 +370,7 @@ class _APGDCarry(NamedTuple):
     done: jax.Array
 
 
-def solve_apgd(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=False):
+def solve_apgd(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=False, differentiable=True):
     """Solve the contact problem by accelerated projected gradient with adaptive restart.
 
     Nesterov/FISTA on ``½γᵀWγ + γᵀq`` over the product of friction cones, fixed step ``1/L``
@@ -381,14 +412,27 @@ def solve_apgd(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=Fals
     L = _norm_estimate(Wm)
     qmax = jnp.max(jnp.abs(qm))
 
+    # The iteration runs on component-major vectors (all normals, then all t1, then all t2):
+    # the cone projection is then elementwise on three contiguous slices, which XLA fuses into
+    # a few kernels per iteration (on the CPU a step of this size costs what its kernel
+    # launches cost). Same iterates as the contact-major form up to round-off.
+    def cm(v):  # contact-major (3C,) -> component-major (3C,)
+        return v.reshape(c, 3).T.reshape(-1)
+
+    Wc = Wm.reshape(c, 3, c, 3).transpose(1, 0, 3, 2).reshape(3 * c, 3 * c)
+    qc, mc = cm(qm), cm(m3)
+
     def proj(v):
-        return _mask_gamma(project_cone(v.reshape(c, 3), mu).reshape(-1), m3)
+        n, t1, t2 = _project_cone_split(v[:c], v[c : 2 * c], v[2 * c :], mu)
+        return jnp.concatenate([n, t1, t2]) * mc
 
     def residual(g, Wg):
-        return _natural_residual(g, Wg + qm, mu, m3, L, qmax)
+        r = (g - proj(g - (Wg + qc) / L)) * mc
+        tiny = jnp.finfo(dtype).tiny
+        return jnp.max(jnp.abs(r)) / (qmax / L + jnp.max(jnp.abs(g)) + tiny)
 
-    x0 = _initial(gamma0, c, mu, m3, dtype)
-    Wx0 = Wm @ x0
+    x0 = cm(_initial(gamma0, c, mu, m3, dtype))
+    Wx0 = Wc @ x0
     r0 = residual(x0, Wx0)
     init = _APGDCarry(
         x=x0,
@@ -403,8 +447,8 @@ def solve_apgd(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=Fals
     )
 
     def step(s):
-        x_new = proj(s.y - (s.Wy + qm) / L)
-        Wx_new = Wm @ x_new
+        x_new = proj(s.y - (s.Wy + qc) / L)
+        Wx_new = Wc @ x_new
         r_new = residual(x_new, Wx_new)
         theta_new = 0.5 * s.theta * (jnp.sqrt(s.theta * s.theta + 4.0) - s.theta)
         beta = s.theta * (1.0 - s.theta) / (s.theta * s.theta + theta_new)
@@ -427,9 +471,12 @@ def solve_apgd(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=Fals
         )
         return new
 
-    final, trace = _frozen_scan(step, init, lambda s: s.done, lambda s: s.best_r, max_iters=max_iters)
+    if differentiable or return_trace:
+        final, trace = _frozen_scan(step, init, lambda s: s.done, lambda s: s.best_r, max_iters=max_iters)
+    else:
+        final = _while(step, init, lambda s: s.done, max_iters)
     sol = ContactSolution(
-        gamma=final.best.reshape(c, 3),
+        gamma=final.best.reshape(3, c).T,
         iterations=final.it,
         residual=final.best_r,
         converged=final.best_r <= tol,
@@ -441,7 +488,7 @@ def solve_apgd(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=Fals
 # PGS
 
 
-def solve_pgs(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=False):
+def solve_pgs(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=False, differentiable=True):
     """Solve the contact problem by projected block Gauss–Seidel (the classic baseline).
 
     One iteration is a sweep over contacts ``i = 0 … C−1`` in order, each using the latest
@@ -496,7 +543,10 @@ def solve_pgs(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=False
         r_new = residual(g_new)
         return (g_new, r_new, s[2] + 1, r_new <= tol)
 
-    (g, r, it, _), trace = _frozen_scan(step, init, lambda s: s[3], lambda s: s[1], max_iters=max_iters)
+    if differentiable or return_trace:
+        (g, r, it, _), trace = _frozen_scan(step, init, lambda s: s[3], lambda s: s[1], max_iters=max_iters)
+    else:
+        g, r, it, _ = _while(step, init, lambda s: s[3], max_iters)
     sol = ContactSolution(gamma=g.reshape(c, 3), iterations=it, residual=r, converged=r <= tol)
     return (sol, trace) if return_trace else sol
 

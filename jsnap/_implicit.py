@@ -88,6 +88,7 @@ def implicit_solver(solve):
                 max_iters=max_iters,
                 tol=tol,
                 gamma0=guess,
+                differentiable=False,  # the iterations are never differentiated here
             )
             # (custom_root's JVP gives integer/bool aux outputs integer tangents, which JAX then
             # rejects: pass them as floats.)
