@@ -27,13 +27,13 @@ from jsnap._contact import solve_apgd, solve_pgs
 from jsnap._implicit import implicit_solver
 from jsnap._model import Model, Params
 from jsnap._neural_sdf import neural_sdf_and_normal
-from jsnap._sdf import mesh_sdf_and_normal, rounded_box_sdf, rounded_box_sdf_and_normal
+from jsnap._sdf import mesh_sdf_and_normal, rounded_box_sdf_and_normal
 from jsnap._util import safe_norm
 
 __all__ = ["Prepared", "Result", "State", "init_state", "prepare", "rollout", "step"]
 
-# Points at which the exact triangle-mesh SDF is evaluated per query (the nearest to the plug's
-# bounding box; see _plug_sdf).
+# Points at which the exact triangle-mesh SDF and the neural SDF are evaluated per query (the
+# nearest to the plug's bounding box; see _plug_sdf).
 _MESH_SDF_POINTS = 384
 # Fractions of a step's straight-line motion at which the predict-correct collision check looks.
 _PATH_CHECKS = (0.25, 0.5, 0.75, 1.0)
@@ -147,18 +147,18 @@ def init_state(model: Model, dtype=None) -> State:
 
 def _plug_sdf(model: Model, q):
     """Signed distance (P,) and outward normal (P, 3) of the plug at points q (P, 3), plug frame."""
-    if model.sdf == "mesh":
-        # Broad phase: the exact triangle-mesh distance is costly, so it is evaluated only at
-        # the points nearest the plug's bounding box; the others get the box distance, a lower
-        # bound (conservative: a point never looks farther than it is).
-        n = min(q.shape[0], _MESH_SDF_POINTS)
-        lower = rounded_box_sdf(q, model.plug_half, 0.0)
-        _, near = jax.lax.top_k(-lower, n)
-        phi, normal = mesh_sdf_and_normal(model.mesh_sdf, q[near])
-        _, box_normal = rounded_box_sdf_and_normal(q, model.plug_half, 0.0)
+    if model.sdf in ("mesh", "neural"):
+        exact = mesh_sdf_and_normal if model.sdf == "mesh" else neural_sdf_and_normal
+        table = model.mesh_sdf if model.sdf == "mesh" else model.neural_sdf
+        if q.shape[0] <= _MESH_SDF_POINTS:
+            return exact(table, q)
+        # Broad phase: the triangle-mesh distance and the network are costly, so they are
+        # evaluated only at the points nearest the plug's bounding box; the others get the box
+        # distance, a lower bound (conservative: a point never looks farther than it is).
+        lower, box_normal = rounded_box_sdf_and_normal(q, model.plug_half, 0.0)
+        _, near = jax.lax.top_k(-lower, _MESH_SDF_POINTS)
+        phi, normal = exact(table, q[near])
         return lower.at[near].set(phi), box_normal.at[near].set(normal)
-    if model.sdf == "neural":
-        return neural_sdf_and_normal(model.neural_sdf, q)
     return rounded_box_sdf_and_normal(q, model.plug_half, model.plug_radius)
 
 
