@@ -144,6 +144,31 @@ def _throughput(d):
     return out
 
 
+def _pareto(d):
+    h = d["headline"]
+    df, f, g = h["default"], h["fastest_within_threshold"], h["fastest_as_accurate_as_default"]
+    out = (
+        f"vs {h['reference']}: default {df['steps_per_second']:.0f} steps/s, "
+        f"RMSE {100 * df['rmse_rel_peak']:.1f} % of peak"
+    )
+    if f:
+        out += (
+            f"; fastest within {100 * h['threshold_rmse_rel_peak']:g} %: {f['label']} "
+            f"{f['steps_per_second']:.0f} steps/s (×{f['speedup_vs_default']:.1f})"
+        )
+    else:
+        out += f"; none within {100 * h['threshold_rmse_rel_peak']:g} %"
+    r = h.get("fastest_within_threshold_on_rise")
+    if r:
+        out += (
+            f" (on the rise to the peak: {r['label']} {r['steps_per_second']:.0f} steps/s, "
+            f"{100 * r['rmse_rise_rel_peak']:.1f} %)"
+        )
+    if g["label"] != df["label"]:
+        out += f"; as accurate as default: {g['label']} ×{g['speedup_vs_default']:.1f}"
+    return out
+
+
 def _generic(d):
     for key in ("summary", "headline"):
         if key in d:
@@ -163,6 +188,7 @@ BENCHMARKS = [
     Bench("reduction_speed", "segmented / reduced models: accuracy and step rate", True, _reduction_speed),
     Bench("reduction_accuracy", "segmented / reduced against full: k_c, tolerance", True, _reduction_accuracy),
     Bench("identify", "parameter identification from a measured force", True, _generic),
+    Bench("pareto", "speed against accuracy: force error vs steps/s over solver settings", True, _pareto),
     Bench("frequency", "steps/s of Models 1-4, ~660 and ~1300 dof (the paper's Fig. 4)", True, _frequency),
     Bench("throughput", "batched (vmap) scene-steps/s of the reduced model vs batch size", True, _throughput),
 ]
