@@ -228,6 +228,7 @@ def main(argv=None):
     ap.add_argument("--runs", type=int, default=3, help="timed runs per rate (median)")
     a = ap.parse_args(argv)
     t_start = time.perf_counter()
+    code = code_version()  # the code as imported, before anyone commits during the run
     meshes = ["coarse"] if a.quick else list(MESHES)
     changes = dict(QUICK_MOTION) if a.quick else {}
     note = None
@@ -264,7 +265,7 @@ def main(argv=None):
         "python_compile_seconds": rates("python_compile_seconds"),
     }
     doc = {
-        "code": code_version(),
+        "code": code,
         "machine": mach,
         "quick": a.quick,
         "changes": changes,

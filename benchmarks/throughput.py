@@ -28,6 +28,7 @@ until ``--max-batch``, until two doublings in a row gain less than 5 % (saturate
 a batch of 16 on), or until a call would take more than ``--max-call`` seconds. CPU numbers and GPU
 numbers are kept apart (``results[platform]``); a run on one platform keeps the other's, and
 the top-level ``headline`` is the CPU one (a GPU's is also ``headline_gpu``).
+``--quick`` (CI): batches 1 and 4, 10 steps, the default series only, no saturation check.
 Writes benchmarks/results/throughput{,_quick}.{json,png}.
 """
 
@@ -234,13 +235,14 @@ def chart(result, title, path):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="batches 1 and 4, 5 steps, default series only")
+    ap.add_argument("--quick", action="store_true", help="batches 1 and 4, 10 steps, default series only")
     ap.add_argument("--steps", type=int, default=20, help="steps of the motion per rollout")
     ap.add_argument("--max-batch", type=int, default=POOL)
     ap.add_argument("--max-call", type=float, default=30.0, help="seconds a timed call may take")
     a = ap.parse_args(argv)
     t_start = time.perf_counter()
-    n_steps = 5 if a.quick else a.steps
+    code = code_version()  # the code as imported, before anyone commits during the run
+    n_steps = 10 if a.quick else a.steps
     if a.quick:
         batches, series = [1, 4], dict(list(SERIES.items())[:1])
     else:
@@ -301,7 +303,7 @@ def main(argv=None):
             results = json.loads(path.read_text()).get("results", {})
         except (json.JSONDecodeError, AttributeError):
             results = {}
-    result["code"] = code_version()
+    result["code"] = code
     results[dev.platform] = result
     # The top-level headline is the CPU one (this project's machine) when there is one; each
     # platform's own headline stays in results[platform] and a GPU's is also "headline_gpu".
