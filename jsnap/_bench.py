@@ -169,6 +169,28 @@ def _pareto(d):
     return out
 
 
+def _identify(d):
+    h = d["headline"]
+    e = h["max_abs_error"]
+    ok = "all within 3 %" if h["all_within_3_percent"] else "NOT all within 3 %"
+    return (
+        f"{h['starts']} starts a factor 2 off, {h['fit_model']}: |error| ≤ {100 * e['E']:.1f} % (E), "
+        f"{100 * e['friction']:.1f} % (μ), {ok}; fit {h['seconds_median']:.0f} s median, "
+        f"{h['seconds_max']:.0f} s max"
+    )
+
+
+def _differentiation(d):
+    worst = max(v["rel_error"] for v in d["check"]["params"].values())
+    rows = {(r["gradient"], r["checkpoint"]): r for r in d["cost"] if r.get("tolerance", 1e-6) >= 1e-6}
+    imp, unr, raw = rows[("implicit", True)], rows[("unrolled", True)], rows[("unrolled", False)]
+    return (
+        f"converged gradient vs central FD: worst {worst:.1e} (E, μ, α, β); value_and_grad, checkpointed: "
+        f"implicit {imp['run_s']:.0f} s / {imp['temp_GB']:.1f} GB, unrolled {unr['run_s']:.0f} s / "
+        f"{unr['temp_GB']:.1f} GB; unrolled without checkpoint {raw['temp_GB']:.0f} GB"
+    )
+
+
 def _generic(d):
     for key in ("summary", "headline"):
         if key in d:
@@ -187,7 +209,8 @@ BENCHMARKS = [
     Bench("stability", "nonlinear (SVK) integrators against linear PMI (the paper's Fig. 3)", True, _stability),
     Bench("reduction_speed", "segmented / reduced models: accuracy and step rate", True, _reduction_speed),
     Bench("reduction_accuracy", "segmented / reduced against full: k_c, tolerance", True, _reduction_accuracy),
-    Bench("identify", "parameter identification from a measured force", True, _generic),
+    Bench("differentiation", "gradients through contact: implicit/unrolled, FD check", True, _differentiation),
+    Bench("identify", "E and friction from a noisy force (finer full model + 5 % noise)", True, _identify),
     Bench("pareto", "speed against accuracy: force error vs steps/s over solver settings", True, _pareto),
     Bench("frequency", "steps/s of Models 1-4, ~660 and ~1300 dof (the paper's Fig. 4)", True, _frequency),
     Bench("throughput", "batched (vmap) scene-steps/s of the reduced model vs batch size", True, _throughput),
@@ -242,9 +265,42 @@ def write_readme(root: Path) -> Path:
             pngs = sorted(p.name for p in (root / "results").glob(f"{b.name}*.png") if "_quick" not in p.name)
             files = ", ".join(f"[{n}](results/{n})" for n in [path.name, *pngs])
         lines.append(f"| `{b.name}` | {b.what} | {head} | {files} |")
+    runs = [line for line in (_times_line(root, False), _times_line(root, True)) if line]
+    if runs:
+        lines += ["", "Last complete runs (per-script times in `results/bench_times*.json`):", ""]
+        lines += [f"- {line}" for line in runs]
     out = root / "README.md"
     out.write_text("\n".join(lines) + "\n")
     return out
+
+
+def _record_times(root: Path, times: dict, quick: bool, complete: bool, wall: float) -> None:
+    """Merge the scripts' wall times into ``results/bench_times{_quick}.json``; a run of every
+    script also records its total (the budgets: 30 min for all, 3 min for ``--quick``)."""
+    path = root / "results" / f"bench_times{'_quick' if quick else ''}.json"
+    data = json.loads(path.read_text()) if path.is_file() else {}
+    data.setdefault("scripts", {}).update(times)
+    load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
+    stamp = {"date": time.strftime("%Y-%m-%d %H:%M"), "cpus": os.cpu_count(), "load_average_after": load}
+    if complete:
+        data["complete_run"] = {"seconds": round(wall, 1), **stamp}
+    data["last"] = stamp
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=1))
+
+
+def _times_line(root: Path, quick: bool) -> str | None:
+    path = root / "results" / f"bench_times{'_quick' if quick else ''}.json"
+    if not path.is_file():
+        return None
+    run = json.loads(path.read_text()).get("complete_run")
+    if not run:
+        return None
+    what = "`jsnap bench --quick`" if quick else "`jsnap bench` (every script)"
+    return (
+        f"{what}: {run['seconds'] / 60:.1f} min on {run['cpus']} CPU cores, {run['date']} "
+        f"(load average after: {run['load_average_after']})."
+    )
 
 
 def main(names: list[str], quick: bool, list_only: bool) -> int:
@@ -261,6 +317,8 @@ def main(names: list[str], quick: bool, list_only: bool) -> int:
         return 2
     todo = [known[n] for n in names] if names else benches
     failed = []
+    times = {}
+    t_all = time.perf_counter()
     for b in todo:
         if quick and not b.quick:
             print(f"jsnap bench: {b.name}: no quick variant, skipped", file=sys.stderr)
@@ -272,8 +330,11 @@ def main(names: list[str], quick: bool, list_only: bool) -> int:
         dt = time.perf_counter() - t0
         status = "ok" if rc == 0 else f"FAILED (exit {rc})"
         print(f"jsnap bench: {b.name} {status} in {dt:.0f} s", file=sys.stderr)
+        times[b.name] = {"seconds": round(dt, 1), "ok": rc == 0}
         if rc != 0:
             failed.append(b.name)
+    if times:
+        _record_times(root, times, quick, complete=not names, wall=time.perf_counter() - t_all)
     readme = write_readme(root)
     print(f"jsnap bench: wrote {readme}", file=sys.stderr)
     return 1 if failed else 0

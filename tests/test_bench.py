@@ -4,6 +4,8 @@ import json
 import shutil
 from pathlib import Path
 
+import pytest
+
 from jsnap import _bench
 from jsnap._cli import main as cli_main
 
@@ -32,3 +34,20 @@ def test_readme_table_from_results(tmp_path, monkeypatch):
     assert len(rows) == 2
     assert "0.7696 mm" in next(r for r in rows if "fem_convergence" in r)
     assert "not run yet" in next(r for r in rows if "contact_squeeze" in r)
+
+
+@pytest.mark.slow
+def test_quick_benchmarks_run(tmp_path, monkeypatch):
+    """`jsnap bench --quick` runs every script that has a quick variant, end to end, on a copy
+    of benchmarks/ (CI runs it so that the benchmarks never rot; its time is recorded in
+    results/bench_times_quick.json, not asserted here)."""
+    bench = tmp_path / "benchmarks"
+    shutil.copytree(ROOT, bench, ignore=shutil.ignore_patterns("results", "__pycache__"))
+    monkeypatch.setenv("JSNAP_BENCHMARKS", str(bench))
+    assert cli_main(["bench", "--quick"]) == 0
+    times = json.loads((bench / "results" / "bench_times_quick.json").read_text())
+    quick = [b.name for b in _bench.available(bench) if b.quick]
+    assert sorted(times["scripts"]) == sorted(quick)
+    assert all(t["ok"] for t in times["scripts"].values())
+    readme = (bench / "README.md").read_text()
+    assert "`jsnap bench --quick`:" in readme
