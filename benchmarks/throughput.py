@@ -15,12 +15,15 @@ Batching: ``jsnap.rollout`` takes one parameter set, so the script vmaps its own
 ``jsnap.prepare`` is vmapped over a batched :class:`jsnap.Params` (outside the timings, like the
 other benchmarks), and a ``lax.scan`` of ``jsnap.step`` over the first ``--steps`` steps of the
 scene's motion (contact from the second step on) is vmapped over the prepared operators and the
-plug offsets, and jitted. Under ``vmap`` the contact solver's per-lane early exit (a
-``lax.cond`` that freezes a converged lane) becomes a select: every lane runs the solver's
-iteration cap (``contact.iterations``, 500 by default) and both branches of the step's
-predict-correct ``cond``. So batching pays a fixed price that a single scene mostly avoids; the
-second series, ``contact.iterations = 100``, measures how much of it is the cap. A single scene
-without ``vmap`` (early exit working) is timed as the reference.
+plug offsets, and jitted. Under ``vmap`` a lane's early exit saves nothing: the forward APGD
+solve (``contact.gradient = "implicit"``, the default) is a ``lax.while_loop``, which batched
+runs until the slowest lane of the batch converges or reaches the cap (``contact.iterations``,
+500 by default), finished lanes kept by selects; with ``"unrolled"`` (a ``lax.scan`` whose
+``lax.cond`` freezes a converged lane) every lane runs the whole cap. Every branch of the
+step's conds and switches (the predict-correct pass, the solver size) runs too. So batching
+pays a price that a single scene mostly avoids; the second series, ``contact.iterations = 100``,
+measures how much of it is the iterations. A single scene without ``vmap`` (early exit working)
+is timed as the reference.
 
 Timings: for every batch size the first call compiles and runs; the steady time is the median
 of three further calls and the compile time is the first call minus it. The batch doubles from 1
@@ -52,6 +55,14 @@ from jsnap._sim import _cast, init_state, step
 OUT = Path(__file__).parent / "results"
 SCENE = {"solver.element": "P2", "solver.mesh_size": 1.7, "solver.method": "reduced", "solver.sdf": "neural"}
 POOL = 512
+NOTE = (
+    "Under vmap a lane's early exit saves nothing: the forward APGD solve (contact.gradient = "
+    "implicit, the default) is a lax.while_loop, which batched runs until the slowest lane "
+    "converges or reaches contact.iterations (finished lanes kept by selects); with "
+    "contact.gradient = unrolled (lax.scan with lax.cond freezes) every lane runs the whole cap. "
+    "Every branch of the step's conds and switches (predict-correct pass, solver size) runs. "
+    "The single_scene row is one scene jitted without vmap (early exit working)."
+)
 SERIES = {"default (500 iterations)": {}, "contact.iterations = 100": {"contact.iterations": 100}}
 E_RANGE, MU_RANGE, OFFSET_RANGE = (1800.0, 2600.0), (0.1, 0.5), (-0.4, 0.4)  # MPa, -, mm
 
@@ -312,13 +323,7 @@ def main(argv=None):
         "what": "batched rollout throughput of the reduced model (jax.vmap over scenes)",
         "scene": SCENE,
         "lanes": {"E_MPa": E_RANGE, "friction": MU_RANGE, "plug_offset_y_mm": OFFSET_RANGE, "pool": POOL},
-        "note": (
-            "Under vmap the contact solver's per-lane early exit (lax.cond freezing a converged lane) "
-            "becomes a select: every lane runs contact.iterations iterations, and every branch of the "
-            "step's conds and switches (predict-correct pass, solver size) runs. "
-            "The single_scene row is one scene jitted without vmap "
-            "(early exit working)."
-        ),
+        "note": NOTE,
         "headline": top,
         **({"headline_gpu": results["gpu"]["headline"]} if "gpu" in results else {}),
         "results": results,
