@@ -7,7 +7,9 @@ finite differences in float64.
 Loss: L = Σ_k F_k² (N²), F the insertion force, over the scene's whole insertion. Gradient with
 respect to E (MPa), friction, Rayleigh alpha (1/s) and beta (s), at alpha = 20 1/s and
 beta = 1e-5 s (the scene's values are 0, where a central difference would need negative
-damping). Full run: the default scene (P2 0.8 mm, 10 mm/s). ``--quick``: P2 1.5 mm at 20 mm/s.
+damping). Full run: the default scene (P2 0.8 mm, 10 mm/s). ``--coarse``: P2 1.5 mm at 20 mm/s,
+with the converged-solve cost rows too (the coarse table of docs/differentiation.md).
+``--quick`` (a CI smoke run): P2 2.5 mm at 40 mm/s, checkpointed variants only, two FD steps.
 
 1. Cost, at the scene's contact settings (500 iterations, tolerance 1e-6): for
    contact.gradient = implicit | unrolled and the step checkpointed or not, the compiled
@@ -20,9 +22,9 @@ damping). Full run: the default scene (P2 0.8 mm, 10 mm/s). ``--quick``: P2 1.5 
    gap term's kink), one too small drowns in the solver's round-off. The reference is the
    plateau: the smaller of the two consecutive steps whose quotients agree best.
 3. The cost variants' gradients against that reference: how accurate each is at the default
-   tolerance. The quick run also times both ways with converged solves (tolerance 1e-11).
+   tolerance. The coarse run also times both ways with converged solves (tolerance 1e-11).
 
-Writes benchmarks/results/differentiation{,_quick}.{json,png}.
+Writes benchmarks/results/differentiation{,_coarse,_quick}.{json,png}.
 """
 
 from __future__ import annotations
@@ -118,7 +120,7 @@ def cost(scene, gradient: str, checkpoint: bool, memory_limit_gb: float, repeats
     return row
 
 
-def check(scene):
+def check(scene, steps=STEPS):
     model = jsnap.build(scene.replace(TIGHT))
     loss, x0 = _loss_fn(model)
     t0 = time.perf_counter()
@@ -128,7 +130,7 @@ def check(scene):
     out = {"loss": float(v), "grad_seconds_with_compile": t_grad, "params": {}}
     for i, n in enumerate(NAMES):
         fds = {}
-        for h in STEPS:
+        for h in steps:
             d = h * float(x0[i])
             xp = list(x0)
             xm = list(x0)
@@ -137,7 +139,7 @@ def check(scene):
             fds[h] = float((f(tuple(xp)) - f(tuple(xm))) / (2 * d))
         # The plateau: the two consecutive steps whose quotients agree best; the smaller one is
         # the reference (chosen from the differences alone, not from the gradient).
-        pairs = list(itertools.pairwise(STEPS))
+        pairs = list(itertools.pairwise(steps))
         h_big, h_ref = min(pairs, key=lambda p: abs(fds[p[1]] / fds[p[0]] - 1))
         fd = fds[h_ref]
         out["params"][n] = {
@@ -155,16 +157,19 @@ def check(scene):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="coarse mesh (P2 1.5 mm), 20 mm/s")
+    ap.add_argument("--quick", action="store_true", help="CI smoke run: P2 2.5 mm, 40 mm/s")
+    ap.add_argument("--coarse", action="store_true", help="P2 1.5 mm, 20 mm/s, converged-solve costs")
     ap.add_argument("--memory-limit", type=float, default=6.0, help="GB of temporaries above which not to run")
     ap.add_argument("--skip-cost", action="store_true")
     a = ap.parse_args(argv)
     changes = {"solver.dtype": "float64"}
     if a.quick:
+        changes |= {"solver.mesh_size": 2.5, "motion.speed": 40.0}
+    elif a.coarse:
         changes |= {"solver.mesh_size": 1.5, "motion.speed": 20.0}
     scene = jsnap.load_scene().replace(changes)
     machine = f"{platform.machine()}, {platform.processor() or platform.system()}, {jax.devices()[0].platform}"
-    stem = "differentiation_quick" if a.quick else "differentiation"
+    stem = "differentiation" + ("_quick" if a.quick else "_coarse" if a.coarse else "")
     OUT.mkdir(exist_ok=True)
     result = {"machine": machine, "changes": changes, "damping": DAMPING, "fd_steps": STEPS, "tight": TIGHT}
     path = OUT / f"{stem}.json"
@@ -172,16 +177,16 @@ def main(argv=None):
         result["cost"] = json.loads(path.read_text()).get("cost", [])
     else:
         result["cost"] = [
-            cost(scene, g, c, a.memory_limit, 2 if a.quick else 1)
+            cost(scene, g, c, a.memory_limit, 2 if a.coarse else 1)
             for g in ("implicit", "unrolled")
-            for c in (True, False)
+            for c in ((True,) if a.quick else (True, False))
         ]
-        if a.quick:  # converged solves: what an accurate gradient costs each way
+        if a.coarse:  # converged solves: what an accurate gradient costs each way
             result["cost"] += [
                 cost(scene, g, True, a.memory_limit, 1, tight=True) for g in ("implicit", "unrolled")
             ]
     path.write_text(json.dumps(result, indent=2))
-    result["check"] = check(scene)
+    result["check"] = check(scene, STEPS[1:3] if a.quick else STEPS)
     ref = {n: p["fd"] for n, p in result["check"]["params"].items()}
     for row in result["cost"]:
         if row.get("grad"):
