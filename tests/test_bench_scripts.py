@@ -1,9 +1,8 @@
 """The frequency and throughput benchmarks: registered with `jsnap bench`, and their committed
 results have the headline the README table reads (positive rates, the expected keys).
 
-Running the scripts is not tested here: even ``--quick`` compiles eight (frequency) or two
-(throughput) XLA programs, a minute or more on the 2-core CI machine; ``jsnap bench --quick``
-runs them.
+Running the scripts is tested by ``tests/test_bench.py::test_quick_benchmarks_run`` (``jsnap bench
+--quick``); quick outputs are not committed.
 """
 
 import json
@@ -29,11 +28,10 @@ def test_registered_with_quick_variant(name):
     assert name in bench and bench[name].quick
 
 
-@pytest.mark.parametrize("stem", ["frequency", "frequency_quick"])
-def test_frequency_headline(stem):
-    d = _load(stem)
+def test_frequency_headline():
+    d = _load("frequency")
     h = d["headline"]
-    meshes = ["coarse"] if d["quick"] else ["coarse", "fine"]
+    meshes = ["coarse", "fine"]
     assert set(h["full_dof"]) == set(meshes)
     for key in ("scan_steps_per_second", "python_steps_per_second", "scan_compile_seconds"):
         for mesh in meshes:
@@ -45,14 +43,12 @@ def test_frequency_headline(stem):
         for v in h[key][m].values()
     ]
     assert min(rates) > 0
-    if not d["quick"]:
-        assert 600 <= h["full_dof"]["coarse"] <= 720 and 1150 <= h["full_dof"]["fine"] <= 1400
+    assert 600 <= h["full_dof"]["coarse"] <= 720 and 1150 <= h["full_dof"]["fine"] <= 1400
     assert "dof" in _bench._frequency(d)
 
 
-@pytest.mark.parametrize("stem", ["throughput", "throughput_quick"])
-def test_throughput_headline(stem):
-    d = _load(stem)
+def test_throughput_headline():
+    d = _load("throughput")
     h = d["headline"]
     for key in ("device", "full_dof", "dof", "best_batch", "best_scene_steps_per_second"):
         assert key in h
