@@ -9,6 +9,7 @@ import os
 from pathlib import Path
 
 import matplotlib
+import numpy as np
 import pytest
 
 NOTEBOOK = Path(__file__).parents[1] / "notebooks" / "fit_material.ipynb"
@@ -33,4 +34,7 @@ def test_fit_material_notebook_runs(tmp_path, monkeypatch):
     for k, true in ns["TRUE"].items():
         assert abs(fit.values[k] / true - 1) < 0.25
         assert 0 < fit.std_errors[k] < float("inf")
-    assert fit.loss_history[-1] < 0.2 * fit.loss_history[0]
+    # The fitted force is far closer to the measurement than the starting model's.
+    m = fit.mask
+    rms = lambda F: float(np.sqrt(np.mean((F[m] - fit.measured[m]) ** 2)))  # noqa: E731
+    assert rms(fit.fitted) < 0.3 * rms(fit.start)
