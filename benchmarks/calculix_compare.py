@@ -5,7 +5,10 @@
 Runs the default scene with the full P2 model in float64: frictionless (against CalculiX's
 linear-geometry, frictionless curve: the like-for-like reference) and with mu = 0.3 (CalculiX
 has it only with nonlinear geometry: context, not a like-for-like check); the frictionless case
-also with a nearly sharp plug (fillet 0.02 mm; CalculiX's plug has sharp corners). Reports the
+also with a nearly sharp plug (fillet 0.02 mm; CalculiX's plug has sharp corners), and with
+every other method of the frictionless case: segmented and reduced sockets, P1 elements, the
+neural and the exact-mesh plug SDF; and the frictionless linear model against CalculiX's
+*nonlinear*-geometry frictionless curve (the linear model's own geometric error). Reports the
 peak (raw and 5-point average, as the reference README does), the travel at the peak and the
 RMS difference of the insertion and lateral force over the reference's travel range.
 
@@ -27,10 +30,18 @@ OUT = Path(__file__).parent / "results"
 REF = Path(jsnap.__file__).parent / "data" / "calculix-cantilever"
 
 LIN, NLGEOM_MU03 = "snap_mu0_lin_curve.csv", "snap_mu03_nlgeom_curve.csv"
+NLGEOM_MU0 = "snap_mu0_nlgeom_curve.csv"
+MU0 = {"contact.friction": 0.0}
 RUNS = [
-    ("jsnap full P2, mu 0", {"contact.friction": 0.0}, LIN),
-    ("jsnap full P2, mu 0, fillet 0.02", {"contact.friction": 0.0, "plug.fillet": 0.02}, LIN),
+    ("jsnap full P2, mu 0", MU0, LIN),
+    ("jsnap full P2, mu 0, fillet 0.02", {**MU0, "plug.fillet": 0.02}, LIN),
     ("jsnap full P2, mu 0.3", {}, NLGEOM_MU03),
+    ("jsnap segmented P2, mu 0", {**MU0, "solver.method": "segmented"}, LIN),
+    ("jsnap reduced P2, mu 0", {**MU0, "solver.method": "reduced"}, LIN),
+    ("jsnap full P1, mu 0", {**MU0, "solver.element": "P1"}, LIN),
+    ("jsnap full P2, mu 0, neural SDF", {**MU0, "solver.sdf": "neural"}, LIN),
+    ("jsnap full P2, mu 0, mesh SDF", {**MU0, "solver.sdf": "mesh"}, LIN),
+    ("jsnap full P2, mu 0 (linear) vs CalculiX nonlinear geometry", MU0, NLGEOM_MU0),
 ]
 
 
@@ -87,7 +98,7 @@ def plot(rows, path, machine):
 
     fig, ax = plt.subplots(1, 2, figsize=(13, 4.8), sharex=True)
     refs = sorted({r["reference"] for r in rows})
-    for name, ls in zip(refs, ["k--", "k:"], strict=False):
+    for name, ls in zip(refs, ["k--", "k:", "k-."], strict=False):
         rt, rF, rlat = load_ref(name)
         ax[0].plot(rt, rF, ls, lw=1.2, label=f"CalculiX {name.replace('_curve.csv', '')}")
         ax[1].plot(rt, rlat, ls, lw=1.2)

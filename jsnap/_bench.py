@@ -38,6 +38,20 @@ def _calculix(d):
     if sharp:
         rel = 100 * sharp["rms_insertion_rise_N"] / sharp["ref_peak_N"]
         out += f"; sharp plug: RMS on the rise {rel:.1f} % of peak"
+    others = [
+        r["peak_ratio"]
+        for k, r in rows.items()
+        if k.startswith(("jsnap segmented", "jsnap reduced")) or "SDF" in k
+    ]
+    if others:
+        out += f"; segmented, reduced, neural/mesh SDF ×{min(others):.3f}–{max(others):.3f}"
+    for key, what in (
+        ("jsnap full P1, mu 0", "P1"),
+        ("vs CalculiX nonlinear geometry", "linear vs nonlinear geometry"),
+    ):
+        hit = [r for k, r in rows.items() if k == key or k.endswith(key)]
+        if hit:
+            out += f"; {what} ×{hit[0]['peak_ratio']:.2f}"
     return out
 
 
