@@ -312,6 +312,13 @@ def _run_in_process(argv: list[str], cwd: Path) -> int:
         os.chdir(old_cwd)
         if "matplotlib.pyplot" in sys.modules:
             sys.modules["matplotlib.pyplot"].close("all")
+        # Free the script's compiled programs before the next one.
+        import gc
+
+        import jax
+
+        jax.clear_caches()
+        gc.collect()
 
 
 def _record_times(root: Path, times: dict, quick: bool, complete: bool, wall: float) -> None:
