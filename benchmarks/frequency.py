@@ -40,15 +40,14 @@ import platform
 import time
 from pathlib import Path
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _common import code_version, jitted_step
 
 import jsnap
 from jsnap._neural_sdf import NeuralSDFConfig, cache_key, cache_path
 from jsnap._sdf import rounded_box_mesh
-from jsnap._sim import _cast, init_state, step
 
 OUT = Path(__file__).parent / "results"
 ELEMENT = "P2"
@@ -60,22 +59,6 @@ MODELS = {
     4: ("reduced", "neural", "segmented + reduced, neural SDF"),
 }
 QUICK_MOTION = {"motion.stroke": 0.1, "motion.speed": 20.0}  # 5 steps of 1 ms
-
-
-def code_version() -> dict:
-    """The commit the numbers were taken at and the library files modified in the working tree."""
-    import subprocess
-
-    def git(*args):
-        try:
-            return subprocess.run(["git", *args], capture_output=True, text=True, cwd=OUT.parent).stdout
-        except OSError:
-            return ""
-
-    return {
-        "commit": git("rev-parse", "HEAD").strip(),
-        "modified": git("status", "--porcelain", "--", "../jsnap").splitlines(),
-    }
 
 
 def machine(load) -> str:
@@ -111,16 +94,8 @@ def scan_timing(model, prepared, runs: int):
 def python_timing(model, prepared, runs: int):
     """(first call seconds: compile + one step, seconds of each pass through the motion) of a
     jitted step called once per step from Python."""
-    dtype = jnp.dtype(model.dtype)
-    dyn, static = eqx.partition((_cast(model, dtype), _cast(prepared, dtype)), eqx.is_array)
-
-    @jax.jit
-    def one(dyn, state, control):
-        m, p = eqx.combine(dyn, static)
-        return step(m, p, state, control)[0]
-
-    controls = jnp.asarray(model.trajectory()[1:], dtype)
-    state0 = init_state(model, dtype)
+    one, dyn, state0 = jitted_step(model, prepared)
+    controls = jnp.asarray(model.trajectory()[1:], state0.x.dtype)
     t0 = time.perf_counter()
     jax.block_until_ready(one(dyn, state0, controls[0]))
     first = time.perf_counter() - t0

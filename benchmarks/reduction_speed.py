@@ -34,13 +34,13 @@ import tempfile
 import time
 from pathlib import Path
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _common import jitted_step
 
 import jsnap
-from jsnap._sim import _cast, init_state, step
+from jsnap._sim import _cast
 
 OUT = Path(__file__).parent / "results"
 CONFIGS = {
@@ -58,15 +58,7 @@ def _build(scene):
 
 def _per_call_rate(model, prepared, controls) -> float:
     """Steps per second of a jitted step called once per step from Python (compile excluded)."""
-    dtype = jnp.dtype(model.dtype)
-    dyn, static = eqx.partition((_cast(model, dtype), _cast(prepared, dtype)), eqx.is_array)
-
-    @jax.jit
-    def one(dyn, state, control):
-        m, p = eqx.combine(dyn, static)
-        return step(m, p, state, control)[0]
-
-    state0 = init_state(model, dtype)
+    one, dyn, state0 = jitted_step(model, prepared)
     jax.block_until_ready(one(dyn, state0, controls[0]))
     best = np.inf
     for _ in range(2):

@@ -48,6 +48,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _common import code_version
 
 import jsnap
 from jsnap._sim import _cast, init_state, step
@@ -185,22 +186,6 @@ def single(model, n_steps: int) -> dict:
         "scene_steps_per_second": n_steps / steady,
         "iterations_mean": float(np.mean(it)),
         "insertion_force_lane0": np.asarray(F, np.float64).tolist(),
-    }
-
-
-def code_version() -> dict:
-    """The commit the numbers were taken at and the library files modified in the working tree."""
-    import subprocess
-
-    def git(*args):
-        try:
-            return subprocess.run(["git", *args], capture_output=True, text=True, cwd=OUT.parent).stdout
-        except OSError:
-            return ""
-
-    return {
-        "commit": git("rev-parse", "HEAD").strip(),
-        "modified": git("status", "--porcelain", "--", "../jsnap").splitlines(),
     }
 
 

@@ -290,12 +290,14 @@ def write_readme(root: Path) -> Path:
 
 def _run_in_process(argv: list[str], cwd: Path) -> int:
     """Run a benchmark script as ``__main__`` in this process; its exit status. The environment,
-    ``sys.argv``, the working directory and matplotlib's figures are restored afterwards."""
+    ``sys.argv``, ``sys.path``, the working directory and matplotlib's figures are restored
+    afterwards."""
     import runpy
     import traceback
 
-    env, old_argv, old_cwd = dict(os.environ), sys.argv, Path.cwd()
+    env, old_argv, old_cwd, old_path = dict(os.environ), sys.argv, Path.cwd(), list(sys.path)
     sys.argv = list(argv)
+    sys.path.insert(0, str(Path(argv[0]).parent))  # as `python script.py` does (benchmarks/_common.py)
     os.chdir(cwd)
     try:
         runpy.run_path(argv[0], run_name="__main__")
@@ -309,6 +311,7 @@ def _run_in_process(argv: list[str], cwd: Path) -> int:
         os.environ.clear()
         os.environ.update(env)
         sys.argv = old_argv
+        sys.path[:] = old_path
         os.chdir(old_cwd)
         if "matplotlib.pyplot" in sys.modules:
             sys.modules["matplotlib.pyplot"].close("all")

@@ -1,0 +1,44 @@
+"""Pieces the benchmark scripts share (not a benchmark itself: `jsnap bench` runs only the
+registered names). Scripts import it as ``from _common import ...`` (their folder is on
+``sys.path`` when run as ``python benchmarks/NAME.py`` and under ``jsnap bench``)."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from jsnap._sim import _cast, init_state, step
+
+
+def code_version() -> dict:
+    """The commit the numbers were taken at and the library files modified in the working tree."""
+    here = Path(__file__).resolve().parent
+
+    def git(*args):
+        try:
+            return subprocess.run(["git", *args], capture_output=True, text=True, cwd=here).stdout
+        except OSError:
+            return ""
+
+    return {
+        "commit": git("rev-parse", "HEAD").strip(),
+        "modified": git("status", "--porcelain", "--", "../jsnap").splitlines(),
+    }
+
+
+def jitted_step(model, prepared):
+    """``(one, dyn, state0)``: ``one(dyn, state, control) -> next state``, the jitted step called
+    once per step from Python (the interactive case), in the scene's dtype."""
+    dtype = jnp.dtype(model.dtype)
+    dyn, static = eqx.partition((_cast(model, dtype), _cast(prepared, dtype)), eqx.is_array)
+
+    @jax.jit
+    def one(dyn, state, control):
+        m, p = eqx.combine(dyn, static)
+        return step(m, p, state, control)[0]
+
+    return one, dyn, init_state(model, dtype)
