@@ -85,6 +85,16 @@ class HostData:
     n_groups: int  # lines of candidate points (see Model.sample_group)
     reduction: dict | None = None  # segmented/reduced socket: orders, build time, cache (_reduce)
 
+    # HostData is a static field of Model, so it is part of the key under which jitted kernels
+    # are cached. Kernels read only ``n_groups`` from it: two models equal in that (and in their
+    # other static fields and array shapes) share compiled code, so a scene built again, or
+    # differing only in values that are arrays (material, k_c...), does not compile anew.
+    def __eq__(self, other):
+        return isinstance(other, HostData) and self.n_groups == other.n_groups
+
+    def __hash__(self):
+        return hash(("HostData", self.n_groups))
+
 
 class Model(eqx.Module):
     """A built scene: FEM blocks, base reaction rows, contact samples, plug and motion.
