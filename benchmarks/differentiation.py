@@ -9,7 +9,8 @@ respect to E (MPa), friction, Rayleigh alpha (1/s) and beta (s), at alpha = 20 1
 beta = 1e-5 s (the scene's values are 0, where a central difference would need negative
 damping). Full run: the default scene (P2 0.8 mm, 10 mm/s). ``--coarse``: P2 1.5 mm at 20 mm/s,
 with the converged-solve cost rows too (the coarse table of docs/differentiation.md).
-``--quick`` (a CI smoke run): P2 2.5 mm at 40 mm/s, implicit checkpointed only, two FD steps.
+``--quick`` (a CI smoke run): P2 2.5 mm at 40 mm/s, one cost row (implicit, checkpointed, converged
+solves), its compiled gradient reused by the check, two FD steps.
 
 1. Cost, at the scene's contact settings (500 iterations, tolerance 1e-6): for
    contact.gradient = implicit | unrolled and the step checkpointed or not, the compiled
@@ -73,7 +74,21 @@ def _loss_fn(model):
     return loss, x0
 
 
-def cost(scene, gradient: str, checkpoint: bool, memory_limit_gb: float, repeats: int, tight: bool = False):
+_FORWARD_S: dict = {}  # forward-pass seconds per (gradient, tight): shared by the checkpoint variants
+
+
+def cost(
+    scene,
+    gradient: str,
+    checkpoint: bool,
+    memory_limit_gb: float,
+    repeats: int,
+    tight: bool = False,
+    keep=None,
+    run: bool = True,
+):
+    """One row of the cost table; ``keep`` (a dict) receives the compiled value_and_grad and the
+    jitted loss, for the gradient check to reuse (the quick run)."""
     model = jsnap.build(scene.replace({"contact.gradient": gradient, **(TIGHT if tight else {})}))
     loss, x0 = _loss_fn(model)
     original = _sim._scan
@@ -99,6 +114,9 @@ def cost(scene, gradient: str, checkpoint: bool, memory_limit_gb: float, repeats
         if temp_gb > memory_limit_gb:
             row["run_s"] = None
             row["note"] = f"not run: needs {temp_gb:.1f} GB of temporaries (limit {memory_limit_gb} GB)"
+        elif not run:
+            row["run_s"] = None
+            row["note"] = "compiled for its memory only (the same computation as checkpointed; the time budget)"
         else:
             times = []
             for _ in range(repeats):
@@ -107,26 +125,37 @@ def cost(scene, gradient: str, checkpoint: bool, memory_limit_gb: float, repeats
                 jax.block_until_ready(g)
                 times.append(time.perf_counter() - t0)
             f = jax.jit(loss)
-            jax.block_until_ready(f(x0))
-            t0 = time.perf_counter()
-            jax.block_until_ready(f(x0))
-            row["forward_s"] = time.perf_counter() - t0
+            key = (gradient, tight)  # the forward pass does not depend on the checkpointing
+            if key not in _FORWARD_S:
+                jax.block_until_ready(f(x0))
+                t0 = time.perf_counter()
+                jax.block_until_ready(f(x0))
+                _FORWARD_S[key] = time.perf_counter() - t0
+            row["forward_s"] = _FORWARD_S[key]
             row["run_s"] = min(times)
             row["loss"] = float(v)
             row["grad"] = {n: float(gi) for n, gi in zip(NAMES, g, strict=True)}
+            if keep is not None:
+                keep.update(vg=compiled, f=f, x0=x0, scene=scene.replace(TIGHT) if tight else scene)
     finally:
         _sim._scan = original
     print({k: v for k, v in row.items() if k != "grad"}, flush=True)
     return row
 
 
-def check(scene, steps=STEPS):
-    model = jsnap.build(scene.replace(TIGHT))
-    loss, x0 = _loss_fn(model)
-    t0 = time.perf_counter()
-    v, g = jax.jit(jax.value_and_grad(loss))(x0)
+def check(scene, steps=STEPS, compiled=None):
+    """The gradient check on the converged solve; ``compiled``: a tight cost row's functions."""
+    if compiled and compiled["scene"].to_dict() == scene.replace(TIGHT).to_dict():
+        x0, f = compiled["x0"], compiled["f"]
+        t0 = time.perf_counter()
+        v, g = compiled["vg"](x0)
+    else:
+        model = jsnap.build(scene.replace(TIGHT))
+        loss, x0 = _loss_fn(model)
+        t0 = time.perf_counter()
+        v, g = jax.jit(jax.value_and_grad(loss))(x0)
+        f = jax.jit(loss)
     t_grad = time.perf_counter() - t0
-    f = jax.jit(loss)
     out = {"loss": float(v), "grad_seconds_with_compile": t_grad, "params": {}}
     for i, n in enumerate(NAMES):
         fds = {}
@@ -173,20 +202,24 @@ def main(argv=None):
     OUT.mkdir(exist_ok=True)
     result = {"machine": machine, "changes": changes, "damping": DAMPING, "fd_steps": STEPS, "tight": TIGHT}
     path = OUT / f"{stem}.json"
+    kept = {}
     if a.skip_cost and path.exists():
         result["cost"] = json.loads(path.read_text()).get("cost", [])
     else:
-        result["cost"] = [
-            cost(scene, g, c, a.memory_limit, 2 if a.coarse else 1)
-            for g in (("implicit",) if a.quick else ("implicit", "unrolled"))
-            for c in ((True,) if a.quick else (True, False))
-        ]
+        if a.quick:  # one compiled program: the converged implicit gradient, reused by the check
+            result["cost"] = [cost(scene, "implicit", True, a.memory_limit, 1, tight=True, keep=kept)]
+        else:
+            result["cost"] = [
+                cost(scene, g, c, a.memory_limit, 2 if a.coarse else 1, run=(g, c) != ("implicit", False))
+                for g in ("implicit", "unrolled")
+                for c in (True, False)
+            ]
         if a.coarse:  # converged solves: what an accurate gradient costs each way
             result["cost"] += [
                 cost(scene, g, True, a.memory_limit, 1, tight=True) for g in ("implicit", "unrolled")
             ]
     path.write_text(json.dumps(result, indent=2))
-    result["check"] = check(scene, STEPS[1:3] if a.quick else STEPS)
+    result["check"] = check(scene, STEPS[1:3] if a.quick else STEPS, kept)
     ref = {n: p["fd"] for n, p in result["check"]["params"].items()}
     for row in result["cost"]:
         if row.get("grad"):
@@ -216,7 +249,8 @@ def plot(result, path):
     ax[1].bar(x, run, color="tab:orange")
     for i, r in enumerate(rows):
         if r["run_s"] is None:
-            ax[1].text(i, 0, "not run\n(memory)", ha="center", va="bottom", fontsize=8)
+            why = "memory" if "GB" in r.get("note", "") else "not timed"
+            ax[1].text(i, 0, f"not run\n({why})", ha="center", va="bottom", fontsize=8)
         elif "forward_s" in r:
             ax[1].text(
                 i, r["run_s"], f"{r['run_s'] / r['forward_s']:.1f}× fwd", ha="center", va="bottom", fontsize=8

@@ -104,18 +104,20 @@ def coupling_table(h, kcs):
     return dict(mesh_size=h, full_dof=int(full.n_dof), segment_dof=list(seg.socket.orders), rows=rows)
 
 
-def reduction_table(h, tols):
+def reduction_table(h, tols, float32=True):
+    """Reduced against full at mesh ``h`` for each tolerance; ``float32=False`` (the quick run)
+    skips the float32 rollouts (two more compiled programs)."""
     scene = jsnap.load_scene().replace({"solver.mesh_size": h})
     full = jsnap.build(scene)
     F64 = _force(full)
-    F32 = _force(full, "float32")
+    F32 = _force(full, "float32") if float32 else None
     Fe = _force(full, params=full.params.replace(E=full.params.E * (1 + 1e-3)))
     c0 = full_normal_compliance(full)
     out = dict(
         mesh_size=h,
         full_dof=int(full.n_dof),
         full_peak_N=float(F64.max()),
-        full_float32_rmse_rel_peak=_rmse(F32, F64),
+        full_float32_rmse_rel_peak=_rmse(F32, F64) if float32 else None,
         full_stiffer_1e3_rmse_rel_peak=_rmse(Fe, F64),
         insertion_force_full=F64.tolist(),
         travel=(np.arange(1, F64.size + 1) * full.dt * full.speed).tolist(),
@@ -134,7 +136,7 @@ def reduction_table(h, tols):
             interface_shapes=info["interface_shapes"],
             build_seconds=info["seconds"],
             rmse_rel_peak_float64=_rmse(F, F64),
-            rmse_rel_peak_float32=_rmse(_force(red, "float32"), F64),
+            rmse_rel_peak_float32=_rmse(_force(red, "float32"), F64) if float32 else None,
             peak_N=float(F.max()),
             compliance_max_rel_error=float(np.max(np.abs(c / c0 - 1))),
             hsv_contact_segment=info["segments"][0]["hsv"][:40],
@@ -163,15 +165,19 @@ def light_contact(h):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="CI smoke run: 780-dof mesh, two k_c, one tolerance")
+    ap.add_argument(
+        "--quick", action="store_true", help="CI smoke run: 780-dof mesh, one k_c, one tolerance, float64 only"
+    )
     a = ap.parse_args(argv)
     stem = "reduction_accuracy_quick" if a.quick else "reduction_accuracy"
-    kcs = [1e6, 1e8] if a.quick else [1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e10]
+    kcs = [1e8] if a.quick else [1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e10]
     with tempfile.TemporaryDirectory() as cache:
         os.environ["JSNAP_CACHE"] = cache
         result = dict(coupling=coupling_table(2.0 if a.quick else 1.6, kcs), reduction=[], light=[])
         for h in [2.0] if a.quick else [0.8, 1.6]:
-            result["reduction"].append(reduction_table(h, [1e-2] if a.quick else [3e-2, 1e-2, 3e-3]))
+            result["reduction"].append(
+                reduction_table(h, [1e-2] if a.quick else [3e-2, 1e-2, 3e-3], float32=not a.quick)
+            )
             if not a.quick:
                 result["light"].append(light_contact(h))
     result["machine"] = f"{platform.machine()}, {os.cpu_count()} CPU cores, {jax.devices()[0].platform}"
@@ -180,7 +186,7 @@ def main(argv=None):
         f"{t['full_dof']} dof": {
             "orders": r["orders"],
             "rmse_float64": round(r["rmse_rel_peak_float64"], 4),
-            "rmse_float32": round(r["rmse_rel_peak_float32"], 4),
+            "rmse_float32": r["rmse_rel_peak_float32"] and round(r["rmse_rel_peak_float32"], 4),
         }
         for t, r in zip(result["reduction"], default, strict=True)
     }

@@ -54,10 +54,10 @@ def run(sdf, changes, steps=None, repeats=2):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="coarse mesh (2.0 mm), the first 60 steps")
+    ap.add_argument("--quick", action="store_true", help="coarse mesh (2.0 mm), the first 20 steps")
     a = ap.parse_args(argv)
     changes = {"solver.mesh_size": 2.0} if a.quick else {}
-    steps, repeats = (60, 1) if a.quick else (None, 2)
+    steps, repeats = (20, 1) if a.quick else (None, 2)
     rows = {sdf: run(sdf, changes, steps, repeats) for sdf in ("mesh", "neural", "analytic")}
     ref = np.asarray(rows["mesh"]["insertion_force"])
     for r in rows.values():
