@@ -5,12 +5,14 @@ registered names). Scripts import it as ``from _common import ...`` (their folde
 from __future__ import annotations
 
 import subprocess
+import time
 from pathlib import Path
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+import jsnap
 from jsnap._sim import _cast, init_state, step
 
 
@@ -42,3 +44,11 @@ def jitted_step(model, prepared):
         return step(m, p, state, control)[0]
 
     return one, dyn, init_state(model, dtype)
+
+
+def two_step_compile_seconds(model, prepared) -> float:
+    """Compile time of ``jsnap.rollout`` for ``model``, measured as the first call of a two-step
+    rollout (the same scan body, compiled anew for that length): lets a slow rollout be run once."""
+    t0 = time.perf_counter()
+    jax.block_until_ready(jsnap.rollout(model, prepared=prepared, controls=model.trajectory()[1:3]).energy)
+    return time.perf_counter() - t0

@@ -391,9 +391,10 @@ def step(model: Model, prepared: Prepared, state: State, control: jax.Array):
         return (prob, sol, Gamma), (jnp.where(fresh, phi_end, phi_now), warm, jnp.any(fresh))
 
     # The first solve and, when it finds fresh points, the second, as a two-pass scan around one
-    # copy of the problem and solver (a second copy in a cond doubled the compile time).
-    first = jax.eval_shape(attempt, phi_now, state.gamma)
-    blank = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), first)
+    # copy of the problem and solver (a second copy in a cond cost ~1-2 s of every compile).
+    blank = jax.tree.map(
+        lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(attempt, phi_now, state.gamma)[0]
+    )
 
     def solve_pass(carry, _):
         solved, (score, gamma0, go) = carry
@@ -401,7 +402,7 @@ def step(model: Model, prepared: Prepared, state: State, control: jax.Array):
             go, attempt, lambda *_: (solved, (score, gamma0, jnp.asarray(False))), score, gamma0
         ), None
 
-    carry0 = (blank[0], (phi_now, state.gamma, jnp.asarray(True)))
+    carry0 = (blank, (phi_now, state.gamma, jnp.asarray(True)))
     ((prob, sol, Gamma), _), _ = jax.lax.scan(solve_pass, carry0, None, length=2)
     idx, A, active = prob.idx, prob.A, prob.active
 
