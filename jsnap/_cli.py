@@ -297,6 +297,12 @@ def main(argv=None) -> int:
     bench = sub.add_parser("bench", help="run benchmarks/ scripts and regenerate benchmarks/README.md")
     bench.add_argument("names", nargs="*", help="benchmarks to run (default: all; see --list)")
     bench.add_argument("--quick", action="store_true", help="the quick variants (CI: a few minutes)")
+    bench.add_argument(
+        "--jobs",
+        type=int,
+        default=None,
+        help="with --quick: worker processes (default 2, at most the CPU count)",
+    )
     bench.add_argument("--list", action="store_true", help="list the benchmarks and exit")
     fit = sub.add_parser("fit", help="fit E, friction, damping to a measured force history (CSV)")
     fit.add_argument("scene", help="scene TOML file (its parameters are the starting point)")
@@ -324,7 +330,7 @@ def main(argv=None) -> int:
         from jsnap import _bench
 
         try:
-            return _bench.main(args.names, args.quick, args.list)
+            return _bench.main(args.names, args.quick, args.list, args.jobs)
         except FileNotFoundError as err:
             print(f"jsnap: error: {err}", file=sys.stderr)
             return 2
