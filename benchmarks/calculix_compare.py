@@ -54,10 +54,16 @@ def avg5(F):
     return np.convolve(F, np.ones(5) / 5, mode="same")
 
 
+_CURVES: dict = {}  # simulated curves by scene: a run compared with two references is simulated once
+
+
 def compare(label, changes, ref_name, mesh):
     scene = jsnap.load_scene().replace({"solver.mesh_size": mesh, **changes})
-    res = jsnap.rollout(jsnap.build(scene), dtype="float64")
-    curve = {k: np.asarray(getattr(res, a)).tolist() for k, a in CURVE.items()}
+    key = json.dumps(scene.to_dict(), sort_keys=True, default=str)
+    if key not in _CURVES:
+        res = jsnap.rollout(jsnap.build(scene), dtype="float64")
+        _CURVES[key] = {k: np.asarray(getattr(res, a)).tolist() for k, a in CURVE.items()}
+    curve = _CURVES[key]
     return {"run": label, "reference": ref_name, "changes": changes, **metrics(curve, ref_name), "curve": curve}
 
 

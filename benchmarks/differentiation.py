@@ -25,7 +25,11 @@ solves), its compiled gradient reused by the check, two FD steps.
 3. The cost variants' gradients against that reference: how accurate each is at the default
    tolerance. The coarse run also times both ways with converged solves (tolerance 1e-11).
 
-Writes benchmarks/results/differentiation{,_coarse,_quick}.{json,png}.
+``--part check`` runs only 2. and writes differentiation_check{,_coarse}.{json,png} (the FD
+sweep); ``--part cost`` runs only 1. and takes 2. from that file when it was made for the same
+scene (3. then compares them). ``jsnap bench`` runs the check among the untimed scripts and the
+cost alone on the machine, since its timings are results. Without ``--part``, both, one after
+the other. Writes benchmarks/results/differentiation{,_coarse,_quick}.{json,png}.
 """
 
 from __future__ import annotations
@@ -190,7 +194,10 @@ def main(argv=None):
     ap.add_argument("--coarse", action="store_true", help="P2 1.5 mm, 20 mm/s, converged-solve costs")
     ap.add_argument("--memory-limit", type=float, default=6.0, help="GB of temporaries above which not to run")
     ap.add_argument("--skip-cost", action="store_true")
+    ap.add_argument("--part", choices=("all", "check", "cost"), default="all", help="see the module docstring")
     a = ap.parse_args(argv)
+    if a.quick and a.part != "all":
+        ap.error("--quick runs both parts (its check reuses the cost row's compiled gradient)")
     changes = {"solver.dtype": "float64"}
     if a.quick:
         changes |= {"solver.mesh_size": 2.5, "motion.speed": 40.0}
@@ -202,6 +209,13 @@ def main(argv=None):
     OUT.mkdir(exist_ok=True)
     result = {"machine": machine, "changes": changes, "damping": DAMPING, "fd_steps": STEPS, "tight": TIGHT}
     path = OUT / f"{stem}.json"
+    check_path = OUT / f"{stem}_check.json"
+    header = {k: result[k] for k in ("changes", "damping", "fd_steps", "tight")}
+    if a.part == "check":
+        result["check"] = check(scene, STEPS)
+        check_path.write_text(json.dumps(result, indent=2))
+        plot_sweep(result, OUT / f"{stem}_check.png")
+        return
     kept = {}
     if a.skip_cost and path.exists():
         result["cost"] = json.loads(path.read_text()).get("cost", [])
@@ -219,13 +233,88 @@ def main(argv=None):
                 cost(scene, g, True, a.memory_limit, 1, tight=True) for g in ("implicit", "unrolled")
             ]
     path.write_text(json.dumps(result, indent=2))
-    result["check"] = check(scene, STEPS[1:3] if a.quick else STEPS, kept)
-    ref = {n: p["fd"] for n, p in result["check"]["params"].items()}
-    for row in result["cost"]:
-        if row.get("grad"):
-            row["rel_error_vs_converged_fd"] = {n: abs(row["grad"][n] / ref[n] - 1) for n in NAMES}
+    if a.part == "all":
+        result["check"] = check(scene, STEPS[1:3] if a.quick else STEPS, kept)
+        if not a.quick:
+            check_path.write_text(json.dumps({**result, "cost": None}, indent=2))
+            plot_sweep(result, OUT / f"{stem}_check.png")
+    elif check_path.exists() and all(json.loads(check_path.read_text()).get(k) == v for k, v in header.items()):
+        result["check"] = json.loads(check_path.read_text())["check"]
+        result["check_from"] = check_path.name
+    else:
+        print(f"no {check_path.name} for this scene: the cost rows are not compared with a converged FD")
+    if "check" in result:
+        ref = {n: p["fd"] for n, p in result["check"]["params"].items()}
+        for row in result["cost"]:
+            if row.get("grad"):
+                row["rel_error_vs_converged_fd"] = {n: abs(row["grad"][n] / ref[n] - 1) for n in NAMES}
     path.write_text(json.dumps(result, indent=2))
     plot(result, OUT / f"{stem}.png")
+
+
+def _plot_errors(ax, result, rows, labels):
+    """Each gradient's error against the converged central difference, per parameter."""
+    chk = result["check"]["params"]
+    names = list(chk)
+    w = 0.8 / (1 + sum(1 for r in rows if r.get("grad")))
+    ax.bar(
+        np.arange(len(names)) - 0.4 + w / 2,
+        [max(chk[n]["rel_error"], 1e-16) for n in names],
+        w,
+        label="implicit, converged solve (tol 1e-11)",
+    )
+    k = 1
+    for r, lab in zip(rows, labels, strict=True):
+        if r.get("grad"):
+            e = r["rel_error_vs_converged_fd"]
+            ax.bar(
+                np.arange(len(names)) - 0.4 + w / 2 + k * w,
+                [max(e[n], 1e-16) for n in names],
+                w,
+                label=lab.replace("\n", ", ") + ("" if "tol" in lab else ", tol 1e-6"),
+            )
+            k += 1
+    ax.axhline(1e-3, color="k", ls="--", lw=0.8)
+    ax.set_yscale("log")
+    ax.set_xticks(np.arange(len(names)), names)
+    ax.set_ylabel("|grad / central FD − 1| (FD on the converged solve)")
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=2)
+    ax.grid(alpha=0.3, axis="y")
+
+
+def plot_sweep(result, path):
+    """|grad / FD − 1| against the relative FD step for each parameter, the reference marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for i, (n, p) in enumerate(result["check"]["params"].items()):
+        hs = [float(h) for h in p["sweep"]]
+        ax.loglog(hs, [max(v["rel_error"], 1e-16) for v in p["sweep"].values()], "o-", color=f"C{i}", label=n)
+        ax.loglog([p["fd_step_rel"]], [max(p["rel_error"], 1e-16)], "o", ms=12, mfc="none", color=f"C{i}")
+    ax.axhline(1e-3, color="k", ls="--", lw=0.8)
+    ax.invert_xaxis()
+    ax.set_xlabel("relative central-difference step")
+    ax.set_ylabel("|implicit gradient / central FD − 1|")
+    ax.legend(title="circled: the plateau (reference)", fontsize=8)
+    ax.grid(alpha=0.3, which="both")
+    ax.set_title(
+        f"Converged gradient (tol 1e-11) against central differences\n{_what(result)}, float64 — "
+        f"{result['machine']}",
+        fontsize=9,
+    )
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _what(result):
+    ch = result["changes"]
+    if "solver.mesh_size" not in ch:
+        return "default scene (P2 0.8 mm, 10 mm/s)"
+    return f"P2 {ch['solver.mesh_size']} mm, {ch.get('motion.speed', 10):g} mm/s"
 
 
 def plot(result, path):
@@ -259,38 +348,12 @@ def plot(result, path):
     for a in ax[:2]:
         a.set_xticks(x, labels, fontsize=8)
         a.grid(alpha=0.3, axis="y")
-    chk = result["check"]["params"]
-    names = list(chk)
-    w = 0.8 / (1 + sum(1 for r in rows if r.get("grad")))
-    ax[2].bar(
-        np.arange(len(names)) - 0.4 + w / 2,
-        [max(chk[n]["rel_error"], 1e-16) for n in names],
-        w,
-        label="implicit, converged solve (tol 1e-11)",
-    )
-    k = 1
-    for r, lab in zip(rows, labels, strict=True):
-        if r.get("grad"):
-            e = r["rel_error_vs_converged_fd"]
-            ax[2].bar(
-                np.arange(len(names)) - 0.4 + w / 2 + k * w,
-                [max(e[n], 1e-16) for n in names],
-                w,
-                label=lab.replace("\n", ", ") + ("" if "tol" in lab else ", tol 1e-6"),
-            )
-            k += 1
-    ax[2].axhline(1e-3, color="k", ls="--", lw=0.8)
-    ax[2].set_yscale("log")
-    ax[2].set_xticks(np.arange(len(names)), names)
-    ax[2].set_ylabel("|grad / central FD − 1| (FD on the converged solve)")
-    ax[2].legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=2)
-    ax[2].grid(alpha=0.3, axis="y")
-    ch = result["changes"]
-    what = (
-        "coarse scene (P2 1.5 mm, 20 mm/s)"
-        if "solver.mesh_size" in ch
-        else "default scene (P2 0.8 mm, 10 mm/s)"
-    )
+    if "check" in result:
+        _plot_errors(ax[2], result, rows, labels)
+    else:
+        ax[2].text(0.5, 0.5, "no converged FD check\nfor this scene", ha="center", va="center")
+        ax[2].set_axis_off()
+    what = _what(result)
     fig.suptitle(f"d(Σ F²)/d(E, μ, α, β) through contact, {what}, float64 — {result['machine']}", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=120)

@@ -2,8 +2,10 @@
 regenerate the table in ``benchmarks/README.md`` from their results.
 
 Each benchmark is a script ``benchmarks/<name>.py`` that writes ``benchmarks/results/<stem>.json``
-(and PNG charts). A full run takes one script at a time, each in its own process, so that its
-timings are undisturbed. ``--quick`` runs the scripts' quick variants (CI runs it so the
+(and PNG charts); each runs in its own process in a full run. A full run first runs the untimed
+scripts (results that are accuracies only: ``Bench.timed`` false) ``N`` at a time (``--jobs``,
+default 2 or the CPU count if lower), then the timed ones one at a time, each alone on the
+machine, so that their timings are undisturbed. ``--quick`` runs the scripts' quick variants (CI runs it so the
 benchmarks never rot): smoke runs whose time is mostly XLA compilation, so they run in ``N``
 worker processes (default: 2, or the CPU count if lower), each running scripts in-process one
 after another, and are compiled with ``QUICK_XLA_FLAGS``; their timings are not headline numbers.
@@ -29,6 +31,15 @@ class Bench:
     what: str
     quick: bool  # the script has a --quick variant
     summary: object  # (result dict) -> str, the headline
+    # Its results include timings (steps/s, compile, build or fit times): a full run gives it the
+    # machine to itself. Untimed ones (accuracy only) run side by side, before the timed ones.
+    timed: bool = True
+    script: str = ""  # benchmarks/<script>.py (default: the name)
+    args: tuple = ()  # arguments of a full run
+
+    @property
+    def file(self) -> str:
+        return f"{self.script or self.name}.py"
 
 
 def _fmt(x, p=3):
@@ -200,13 +211,22 @@ def _identify(d):
 
 
 def _differentiation(d):
-    worst = max(v["rel_error"] for v in d["check"]["params"].values())
     rows = {(r["gradient"], r["checkpoint"]): r for r in d["cost"] if r.get("tolerance", 1e-6) >= 1e-6}
     imp, unr, raw = rows[("implicit", True)], rows[("unrolled", True)], rows[("unrolled", False)]
     return (
-        f"converged gradient vs central FD: worst {worst:.1e} (E, μ, α, β); value_and_grad, checkpointed: "
+        "value_and_grad, checkpointed: "
         f"implicit {imp['run_s']:.0f} s / {imp['temp_GB']:.1f} GB, unrolled {unr['run_s']:.0f} s / "
         f"{unr['temp_GB']:.1f} GB; unrolled without checkpoint {raw['temp_GB']:.0f} GB"
+    )
+
+
+def _differentiation_check(d):
+    p = d["check"]["params"]
+    worst = max(p, key=lambda n: p[n]["rel_error"])
+    return (
+        f"{', '.join(p)}: central FD over {len(d['fd_steps'])} steps each; worst |grad/FD − 1| "
+        f"{p[worst]['rel_error']:.1e} ({worst}), where the FD plateau's own spread is "
+        f"{p[worst]['plateau_spread']:.1e}"
     )
 
 
@@ -218,17 +238,56 @@ def _generic(d):
 
 
 BENCHMARKS = [
-    Bench("calculix_compare", "full model against CalculiX (independent FEM)", True, _calculix),
-    Bench("design_guide", "peak force against the snap-fit design guide, gap decomposed", True, _design_guide),
+    Bench("calculix_compare", "full model against CalculiX (independent FEM)", True, _calculix, timed=False),
+    Bench(
+        "design_guide",
+        "peak force against the snap-fit design guide, gap decomposed",
+        True,
+        _design_guide,
+        timed=False,
+    ),
     Bench("sdf_accuracy", "neural SDF accuracy and training time (default plug)", False, _sdf_accuracy),
     Bench("sdf_speed", "SDF query speed: neural against exact mesh", True, _sdf_speed),
     Bench("sdf_scene", "default scene with each SDF: force RMSE and step rate", True, _sdf_scene),
     Bench("contact_squeeze", "APGD against PGS on the symmetric squeeze", True, _contact_squeeze),
-    Bench("fem_convergence", "cantilever tip deflection under refinement, P1/P2", True, _fem_convergence),
-    Bench("stability", "nonlinear (SVK) integrators against linear PMI (the paper's Fig. 3)", True, _stability),
+    Bench(
+        "fem_convergence",
+        "cantilever tip deflection under refinement, P1/P2",
+        True,
+        _fem_convergence,
+        timed=False,
+    ),
+    Bench(
+        "stability",
+        "nonlinear (SVK) integrators against linear PMI (the paper's Fig. 3)",
+        True,
+        _stability,
+        timed=False,
+    ),
     Bench("reduction_speed", "segmented / reduced models: accuracy and step rate", True, _reduction_speed),
-    Bench("reduction_accuracy", "segmented / reduced against full: k_c, tolerance", True, _reduction_accuracy),
-    Bench("differentiation", "gradients through contact: implicit/unrolled, FD check", True, _differentiation),
+    Bench(
+        "reduction_accuracy",
+        "segmented / reduced against full: k_c, tolerance",
+        True,
+        _reduction_accuracy,
+        timed=False,
+    ),
+    Bench(
+        "differentiation_check",
+        "converged gradient through contact against central differences (default scene)",
+        False,
+        _differentiation_check,
+        timed=False,
+        script="differentiation",
+        args=("--part", "check"),
+    ),
+    Bench(
+        "differentiation",
+        "gradients through contact: implicit/unrolled, checkpointed or not: cost and accuracy",
+        True,
+        _differentiation,
+        args=("--part", "cost"),
+    ),
     Bench("identify", "E and friction from a noisy force (finer full model + 5 % noise)", True, _identify),
     Bench("pareto", "speed against accuracy: force error vs steps/s over solver settings", True, _pareto),
     Bench("frequency", "steps/s of Models 1-4, ~660 and ~1300 dof (the paper's Fig. 4)", True, _frequency),
@@ -249,7 +308,7 @@ def benchmarks_dir() -> Path:
 
 
 def available(root: Path) -> list[Bench]:
-    return [b for b in BENCHMARKS if (root / f"{b.name}.py").is_file()]
+    return [b for b in BENCHMARKS if (root / b.file).is_file()]
 
 
 def _result(root: Path, name: str, quick: bool):
@@ -353,7 +412,13 @@ def _times_line(root: Path, quick: bool) -> str | None:
     if not run:
         return None
     what = "`jsnap bench --quick`" if quick else "`jsnap bench` (every script)"
-    workers = f", {run['workers']} worker processes" if run.get("workers", 1) > 1 else ""
+    workers = ""
+    if run.get("workers", 1) > 1:
+        workers = f", {run['workers']} worker processes"
+    elif run.get("untimed_workers", 1) > 1:
+        workers = (
+            f", the untimed scripts {run['untimed_workers']} at a time ({run['untimed_seconds'] / 60:.1f} min)"
+        )
     return (
         f"{what}: {run['seconds'] / 60:.1f} min on {run['cpus']} CPU cores{workers}, {run['date']} "
         f"(load average after: {run['load_average_after']})."
@@ -384,21 +449,21 @@ def _quick_order(root: Path, todo: list[Bench]) -> list[Bench]:
     return sorted(todo, key=lambda b: -last.get(b.name, {}).get("seconds", float("inf")))
 
 
-def _run_quick(root: Path, todo: list[Bench], jobs: int) -> dict:
+def _run_quick(root: Path, todo: list[Bench], jobs: int) -> tuple[dict, str]:
     """The quick scripts in ``jobs`` worker processes (spawned, each running its scripts one
-    after another in-process and taking the next as it finishes one); per-script times."""
+    after another in-process and taking the next as it finishes one); per-script times and the
+    XLA flags they ran with."""
     from concurrent.futures import ProcessPoolExecutor, as_completed
     from multiprocessing import get_context
 
-    flags = os.environ.get("XLA_FLAGS", "")
-    old = flags
-    if "xla_cpu_use_fusion_emitters" not in flags:
-        os.environ["XLA_FLAGS"] = f"{flags} {QUICK_XLA_FLAGS}".strip()
+    old = os.environ.get("XLA_FLAGS", "")
+    flags = old if "xla_cpu_use_fusion_emitters" in old else f"{old} {QUICK_XLA_FLAGS}".strip()
+    os.environ["XLA_FLAGS"] = flags
     times = {}
     try:
         with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
             futures = {
-                pool.submit(_quick_task, b.name, [str(root / f"{b.name}.py"), "--quick"], str(root.parent)): b
+                pool.submit(_quick_task, b.name, [str(root / b.file), "--quick"], str(root.parent)): b
                 for b in _quick_order(root, todo)
             }
             for fut in as_completed(futures):
@@ -415,7 +480,42 @@ def _run_quick(root: Path, todo: list[Bench], jobs: int) -> dict:
         os.environ["XLA_FLAGS"] = old
         if not old:
             del os.environ["XLA_FLAGS"]
-    return {b.name: times[b.name] for b in todo if b.name in times}
+    return {b.name: times[b.name] for b in todo if b.name in times}, flags
+
+
+def _run_script(root: Path, b: Bench) -> tuple[int, float]:
+    """One script of a full run in its own process (its timings start from a clean process)."""
+    print(f"jsnap bench: {b.name} ...", file=sys.stderr, flush=True)
+    t0 = time.perf_counter()
+    rc = subprocess.call([sys.executable, str(root / b.file), *b.args], cwd=root.parent)
+    dt = time.perf_counter() - t0
+    print(f"jsnap bench: {b.name} {'ok' if rc == 0 else f'FAILED (exit {rc})'} in {dt:.0f} s", file=sys.stderr)
+    return rc, dt
+
+
+def _run_full(root: Path, todo: list[Bench], jobs: int) -> tuple[dict, dict]:
+    """A full run: first the untimed scripts (accuracy only), ``jobs`` at a time, longest first
+    by the last recorded times; then the timed ones one at a time, alone on the machine, in the
+    listed order (a timed script may read an untimed one's results: differentiation's cost rows
+    are compared with differentiation_check's converged gradient)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    untimed = [b for b in todo if not b.timed]
+    path = root / "results" / "bench_times.json"
+    last = json.loads(path.read_text()).get("scripts", {}) if path.is_file() else {}
+    untimed.sort(key=lambda b: -last.get(b.name, {}).get("seconds", float("inf")))
+    times = {}
+    t0 = time.perf_counter()
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
+        for b, (rc, dt) in zip(untimed, pool.map(lambda b: _run_script(root, b), untimed), strict=True):
+            times[b.name] = {"seconds": round(dt, 1), "ok": rc == 0, "timed": False}
+    untimed_wall = time.perf_counter() - t0
+    for b in todo:
+        if b.timed:
+            rc, dt = _run_script(root, b)
+            times[b.name] = {"seconds": round(dt, 1), "ok": rc == 0, "timed": True}
+    how = {"untimed_workers": jobs, "untimed_seconds": round(untimed_wall, 1)}
+    return {b.name: times[b.name] for b in todo}, how
 
 
 def main(names: list[str], quick: bool, list_only: bool, jobs: int | None = None) -> int:
@@ -430,35 +530,22 @@ def main(names: list[str], quick: bool, list_only: bool, jobs: int | None = None
     if unknown:
         print(f"jsnap bench: unknown benchmark(s) {unknown}; known: {sorted(known)}", file=sys.stderr)
         return 2
-    if jobs is not None and (jobs < 1 or not quick):
-        print(
-            f"jsnap bench: --jobs {jobs}: give a count >= 1, with --quick only (full runs take one "
-            "script at a time, so that their timings are not disturbed)",
-            file=sys.stderr,
-        )
+    if jobs is not None and jobs < 1:
+        print(f"jsnap bench: --jobs {jobs}: give a count >= 1", file=sys.stderr)
         return 2
+    jobs = jobs or min(2, os.cpu_count() or 1)
     todo = [known[n] for n in names] if names else benches
     t_all = time.perf_counter()
-    how = {}
     if quick:
         for b in todo:
             if not b.quick:
                 print(f"jsnap bench: {b.name}: no quick variant, skipped", file=sys.stderr)
         todo = [b for b in todo if b.quick]
-        jobs = min(jobs or min(2, os.cpu_count() or 1), max(len(todo), 1))
-        times = _run_quick(root, todo, jobs) if todo else {}
-        how = {"workers": jobs, "xla_flags": os.environ.get("XLA_FLAGS") or QUICK_XLA_FLAGS}
+        jobs = min(jobs, max(len(todo), 1))
+        times, flags = _run_quick(root, todo, jobs) if todo else ({}, "")
+        how = {"workers": jobs, "xla_flags": flags}
     else:
-        times = {}
-        for b in todo:
-            print(f"jsnap bench: {b.name} ...", file=sys.stderr, flush=True)
-            t0 = time.perf_counter()
-            # Each script its own process, so that its timings start from a clean process.
-            rc = subprocess.call([sys.executable, str(root / f"{b.name}.py")], cwd=root.parent)
-            dt = time.perf_counter() - t0
-            status = "ok" if rc == 0 else f"FAILED (exit {rc})"
-            print(f"jsnap bench: {b.name} {status} in {dt:.0f} s", file=sys.stderr)
-            times[b.name] = {"seconds": round(dt, 1), "ok": rc == 0}
+        times, how = _run_full(root, todo, jobs)
     failed = [n for n, t in times.items() if not t["ok"]]
     if times:
         _record_times(root, times, quick, complete=not names, wall=time.perf_counter() - t_all, **how)

@@ -296,7 +296,7 @@ def _buckets(capacity: int) -> tuple[int, ...]:
     return tuple(sorted({small, capacity}))
 
 
-def _solve(model: Model, prob: ContactProblem):
+def _solve(model: Model, prob: ContactProblem, sizes: tuple[int, ...] | None = None):
     """Solve the step's cone problem; ``(solution, Gamma)`` with Gamma (C, 3) in world axes.
 
     Only the active slots carry force, and the buffer fills its slots from the front (top_k),
@@ -305,12 +305,13 @@ def _solve(model: Model, prob: ContactProblem):
     W, so the solution is the same, while each APGD iteration's matvec shrinks with the square
     of the size (the default 64 slots hold 10-15 active ones: a 16-slot solve, measured 2x
     faster per step). Under ``vmap`` the switch runs every branch (selects), ~1.3x the full cost.
+    ``sizes`` overrides the sizes (the predict-correct second solve uses the whole buffer).
     """
     solve = solve_apgd if model.contact_solver == "apgd" else solve_pgs
     if model.contact_gradient == "implicit":  # derivatives of the solution, not the iterations
         solve = implicit_solver(solve)
     C = prob.mu.shape[0]
-    sizes = _buckets(C)
+    sizes = sizes or _buckets(C)
 
     def leading(k):
         def f(_):
@@ -370,40 +371,34 @@ def step(model: Model, prepared: Prepared, state: State, control: jax.Array):
     # 2.-3. Collision and the cone problem: candidates within the margin now.
     y = model.sample_rest + sock.sample_disp(x)
     phi_now, _ = _plug_sdf(model, y - state.plug)
+    prob = _contact_problem(model, prepared, state, vbar_free, vp_free, s_p, y, phi_now, state.gamma)
+    sol, Gamma = _solve(model, prob)
 
-    def attempt(score, gamma0):
-        prob = _contact_problem(model, prepared, state, vbar_free, vp_free, s_p, y, score, gamma0)
-        sol, Gamma = _solve(model, prob)
-        # Predict-correct: where the solved motion would carry points that were not in the
-        # buffer into the plug (a stiff, light socket released by the plug springs back through
-        # a large gap within one step), they are added and the problem solved again,
-        # warm-started. The path within the step is straight (x + s T vbar), but a released
-        # stiff socket can move farther than the plug is thick in one step (PMI's undamped high
-        # modes flip sign), so the path is checked at several points, not only at its end.
-        dy = T * sock.sample_disp(vbar_free + jnp.einsum("cdn,cd->n", prob.A, Gamma))
-        dp = T * (vp_free - s_p * jnp.sum(Gamma, axis=0))
-        phi_end = jnp.min(
-            jnp.stack([_plug_sdf(model, y + f * dy - state.plug - f * dp)[0] for f in _PATH_CHECKS]), axis=0
-        )
-        in_buffer = jnp.zeros(phi_now.shape, bool).at[prob.idx].set(prob.active)
-        fresh = (phi_end < -0.5 * model.margin) & ~in_buffer
-        warm = state.gamma.at[prob.idx].set(sol.gamma * prob.active[:, None])
-        return (prob, sol, Gamma), (jnp.where(fresh, phi_end, phi_now), warm, jnp.any(fresh))
-
-    # The first solve and, when it finds fresh points, the second, as a two-pass scan around one
-    # copy of the problem and solver (a second copy in a cond cost ~1-2 s of every compile).
-    blank = jax.tree.map(
-        lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(attempt, phi_now, state.gamma)[0]
+    # Predict-correct: where the solved motion would carry points that were not in the buffer
+    # into the plug (a stiff, light socket released by the plug springs back through a large gap
+    # within one step), add them and solve again, warm-started.
+    # The path within the step is straight (x + s T vbar), but a released stiff socket can move
+    # farther than the plug is thick in one step (PMI's undamped high modes flip sign), so the
+    # path is checked at several points, not only at its end.
+    dy = T * sock.sample_disp(vbar_free + jnp.einsum("cdn,cd->n", prob.A, Gamma))
+    dp = T * (vp_free - s_p * jnp.sum(Gamma, axis=0))
+    phi_end = jnp.min(
+        jnp.stack([_plug_sdf(model, y + f * dy - state.plug - f * dp)[0] for f in _PATH_CHECKS]), axis=0
     )
+    in_buffer = jnp.zeros(phi_now.shape, bool).at[prob.idx].set(prob.active)
+    fresh = (phi_end < -0.5 * model.margin) & ~in_buffer
 
-    def solve_pass(carry, _):
-        solved, (score, gamma0, go) = carry
-        return jax.lax.cond(
-            go, attempt, lambda *_: (solved, (score, gamma0, jnp.asarray(False))), score, gamma0
-        ), None
+    def correct(_):
+        warm = state.gamma.at[prob.idx].set(sol.gamma * prob.active[:, None])
+        score = jnp.where(fresh, phi_end, phi_now)
+        prob2 = _contact_problem(model, prepared, state, vbar_free, vp_free, s_p, y, score, warm)
+        # The second solve is rare (a few steps of a rollout): one size, the whole buffer, so
+        # that it adds one compiled copy of the solver, not one per size. A two-pass scan around
+        # a single copy (tried) compiled ~0.5 s faster but ran 10-15 % slower forward and in
+        # reverse mode (its carry holds the whole problem, the dense contact operator included).
+        return (prob2, *_solve(model, prob2, sizes=(prob2.mu.shape[0],)))
 
-    carry0 = (blank, (phi_now, state.gamma, jnp.asarray(True)))
-    ((prob, sol, Gamma), _), _ = jax.lax.scan(solve_pass, carry0, None, length=2)
+    prob, sol, Gamma = jax.lax.cond(jnp.any(fresh), correct, lambda _: (prob, sol, Gamma), None)
     idx, A, active = prob.idx, prob.A, prob.active
 
     # 4. Update.

@@ -56,3 +56,45 @@ def test_quick_benchmarks_run(tmp_path, monkeypatch):
     assert all(t["ok"] for t in times["scripts"].values())
     readme = (bench / "README.md").read_text()
     assert "`jsnap bench --quick`:" in readme
+
+
+def test_full_run_untimed_side_by_side_then_timed_alone(tmp_path, monkeypatch):
+    """A full run starts the untimed scripts together (two workers) and runs each timed one
+    alone after them; bench_times.json records which was which. Stand-in scripts log when they
+    start and end (the runner runs whatever benchmarks/<name>.py holds)."""
+    bench = tmp_path / "benchmarks"
+    (bench / "results").mkdir(parents=True)
+    log = tmp_path / "log.txt"
+    body = (
+        "import sys, time\n"
+        "log = open({log!r}, 'a')\n"
+        "log.write(f'start {name} {{time.time()}} {{sys.argv[1:]}}\\n'); log.flush()\n"
+        "time.sleep(1.0)\n"
+        "log.write(f'end {name} {{time.time()}}\\n')\n"
+    )
+    names = ["fem_convergence", "stability", "contact_squeeze"]  # untimed, untimed, timed
+    for name in names:
+        (bench / f"{name}.py").write_text(body.format(log=str(log), name=name))
+    monkeypatch.setenv("JSNAP_BENCHMARKS", str(bench))
+    assert _bench.main([], quick=False, list_only=False, jobs=2) == 0
+    events = {}
+    for line in log.read_text().splitlines():
+        kind, name, t = line.split()[:3]
+        events[(kind, name)] = float(t)
+    # The two untimed scripts overlapped; the timed one started after both had ended.
+    assert events[("start", "stability")] < events[("end", "fem_convergence")]
+    assert events[("start", "fem_convergence")] < events[("end", "stability")]
+    last_untimed = max(events[("end", "fem_convergence")], events[("end", "stability")])
+    assert events[("start", "contact_squeeze")] >= last_untimed
+    times = json.loads((bench / "results" / "bench_times.json").read_text())
+    assert {n: t["timed"] for n, t in times["scripts"].items()} == {
+        "fem_convergence": False,
+        "stability": False,
+        "contact_squeeze": True,
+    }
+    assert times["complete_run"]["untimed_workers"] == 2
+
+
+def test_jobs_must_be_positive(capsys):
+    assert cli_main(["bench", "--jobs", "0", "contact_squeeze"]) == 2
+    assert "--jobs 0" in capsys.readouterr().err
