@@ -204,7 +204,7 @@ def _identify(d):
     e = h["max_abs_error"]
     ok = "all within 3 %" if h["all_within_3_percent"] else "NOT all within 3 %"
     return (
-        f"{h['starts']} starts a factor 2 off, {h['fit_model']}: |error| ≤ {100 * e['E']:.1f} % (E), "
+        f"{h['starts']} starts a factor 2 off, {h['fit_model']}: errors ≤ {100 * e['E']:.1f} % (E), "
         f"{100 * e['friction']:.1f} % (μ), {ok}; fit {h['seconds_median']:.0f} s median, "
         f"{h['seconds_max']:.0f} s max"
     )
@@ -224,7 +224,7 @@ def _differentiation_check(d):
     p = d["check"]["params"]
     worst = max(p, key=lambda n: p[n]["rel_error"])
     return (
-        f"{', '.join(p)}: central FD over {len(d['fd_steps'])} steps each; worst |grad/FD − 1| "
+        f"{', '.join(p)}: central FD over {len(d['fd_steps'])} steps each; worst relative error "
         f"{p[worst]['rel_error']:.1e} ({worst}), where the FD plateau's own spread is "
         f"{p[worst]['plateau_spread']:.1e}"
     )
@@ -534,8 +534,8 @@ def main(names: list[str], quick: bool, list_only: bool, jobs: int | None = None
         print(f"jsnap bench: --jobs {jobs}: give a count >= 1", file=sys.stderr)
         return 2
     # Quick: two workers by default (compilation, 1.3x faster here). Full: one (two at a time
-    # ran the untimed scripts only ~8 % faster on this 2-core machine, memory-bound as they are,
-    # and stretched each 1.7-4x, incidental timings included).
+    # ran the untimed scripts ~10 % faster on this 2-core machine, memory-bound as they are,
+    # and stretched each 1.2-4.5x, incidental timings included).
     jobs = jobs or (min(2, os.cpu_count() or 1) if quick else 1)
     todo = [known[n] for n in names] if names else benches
     t_all = time.perf_counter()
