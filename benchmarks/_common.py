@@ -52,3 +52,21 @@ def two_step_compile_seconds(model, prepared) -> float:
     t0 = time.perf_counter()
     jax.block_until_ready(jsnap.rollout(model, prepared=prepared, controls=model.trajectory()[1:3]).energy)
     return time.perf_counter() - t0
+
+
+def scan_timing(model, prepared, runs: int, controls=None):
+    """``(result of the first call, its seconds, the seconds of each further call)`` of
+    ``jsnap.rollout``. With ``runs = 0`` (a slow rollout, run once) the one entry is the first
+    call less the compile time, measured by :func:`two_step_compile_seconds`."""
+    t0 = time.perf_counter()
+    res = jsnap.rollout(model, prepared=prepared, controls=controls)
+    jax.block_until_ready(res.energy)
+    first = time.perf_counter() - t0
+    if runs == 0:
+        return res, first, [first - two_step_compile_seconds(model, prepared)]
+    times = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        jax.block_until_ready(jsnap.rollout(model, prepared=prepared, controls=controls).energy)
+        times.append(time.perf_counter() - t0)
+    return res, first, times

@@ -210,7 +210,8 @@ def main(argv=None):
     result = {"machine": machine, "changes": changes, "damping": DAMPING, "fd_steps": STEPS, "tight": TIGHT}
     path = OUT / f"{stem}.json"
     check_path = OUT / f"{stem}_check.json"
-    header = {k: result[k] for k in ("changes", "damping", "fd_steps", "tight")}
+    # As it reads back from JSON (tuples become lists), to compare with a saved check's.
+    header = json.loads(json.dumps({k: result[k] for k in ("changes", "damping", "fd_steps", "tight")}))
     if a.part == "check":
         result["check"] = check(scene, STEPS)
         check_path.write_text(json.dumps(result, indent=2))
@@ -238,8 +239,10 @@ def main(argv=None):
         if not a.quick:
             check_path.write_text(json.dumps({**result, "cost": None}, indent=2))
             plot_sweep(result, OUT / f"{stem}_check.png")
-    elif check_path.exists() and all(json.loads(check_path.read_text()).get(k) == v for k, v in header.items()):
-        result["check"] = json.loads(check_path.read_text())["check"]
+    elif (saved := json.loads(check_path.read_text()) if check_path.exists() else {}) and all(
+        saved.get(k) == v for k, v in header.items()
+    ):
+        result["check"] = saved["check"]
         result["check_from"] = check_path.name
     else:
         print(f"no {check_path.name} for this scene: the cost rows are not compared with a converged FD")

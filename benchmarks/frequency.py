@@ -45,7 +45,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _common import code_version, jitted_step, two_step_compile_seconds
+from _common import code_version, jitted_step, scan_timing
 
 import jsnap
 from jsnap._neural_sdf import NeuralSDFConfig, cache_key, cache_path
@@ -77,24 +77,6 @@ def neural_cached(scene) -> bool:
 
     half, radius, _ = _plug_geometry(scene, connector_geometry(scene))
     return cache_path(cache_key(rounded_box_mesh(half, radius), NeuralSDFConfig())).is_file()
-
-
-def scan_timing(model, prepared, runs: int):
-    """(result of the first call, its seconds, the seconds of each further call). With
-    ``runs = 0`` the run time is the first call's less the compile time, measured as the first
-    call of a two-step rollout (the same scan body, compiled anew for the other length)."""
-    t0 = time.perf_counter()
-    res = jsnap.rollout(model, prepared=prepared)
-    jax.block_until_ready(res.energy)
-    first = time.perf_counter() - t0
-    if runs == 0:
-        return res, first, [first - two_step_compile_seconds(model, prepared)]
-    times = []
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        jax.block_until_ready(jsnap.rollout(model, prepared=prepared).energy)
-        times.append(time.perf_counter() - t0)
-    return res, first, times
 
 
 def python_timing(model, prepared, runs: int):

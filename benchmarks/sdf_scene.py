@@ -15,12 +15,11 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import time
 from pathlib import Path
 
 import jax
 import numpy as np
-from _common import two_step_compile_seconds
+from _common import scan_timing
 
 import jsnap
 
@@ -32,17 +31,9 @@ def run(sdf, changes, steps=None, repeats=2):
     model = jsnap.build(jsnap.load_scene().replace({"solver.sdf": sdf, **changes}))
     prepared = jsnap.prepare(model)  # the PMI operator: the same for every SDF, not timed
     controls = None if steps is None else model.trajectory()[1 : steps + 1]
-    t0 = time.perf_counter()
-    res = jsnap.rollout(model, prepared=prepared, controls=controls)
-    jax.block_until_ready(res.energy)
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(jsnap.rollout(model, prepared=prepared, controls=controls).energy)
-        times.append(time.perf_counter() - t0)
-    compile_s = two_step_compile_seconds(model, prepared) if not times else first - min(times)
-    run_s = min(times) if times else first - compile_s
+    res, first, times = scan_timing(model, prepared, repeats, controls)
+    run_s = min(times)
+    compile_s = first - run_s
     F = np.asarray(res.insertion_force)
     return {
         "sdf": sdf,

@@ -441,12 +441,19 @@ def _quick_task(name: str, argv: list[str], cwd: str) -> tuple[int, float]:
     return rc, time.perf_counter() - t0
 
 
-def _quick_order(root: Path, todo: list[Bench]) -> list[Bench]:
-    """Longest first by the last recorded quick times (unknown ones first, in listed order), so
-    that the workers finish together."""
-    path = root / "results" / "bench_times_quick.json"
+def _longest_first(root: Path, todo: list[Bench], quick: bool) -> list[Bench]:
+    """Longest first by the last recorded times (unknown ones first, in listed order), so that
+    parallel workers finish together."""
+    path = root / "results" / f"bench_times{'_quick' if quick else ''}.json"
     last = json.loads(path.read_text()).get("scripts", {}) if path.is_file() else {}
     return sorted(todo, key=lambda b: -last.get(b.name, {}).get("seconds", float("inf")))
+
+
+def _done(name: str, rc: int, dt: float) -> dict:
+    """Report a finished script; its entry in ``bench_times*.json``."""
+    status = "ok" if rc == 0 else f"FAILED (exit {rc})"
+    print(f"jsnap bench: {name} {status} in {dt:.0f} s", file=sys.stderr, flush=True)
+    return {"seconds": round(dt, 1), "ok": rc == 0}
 
 
 def _run_quick(root: Path, todo: list[Bench], jobs: int) -> tuple[dict, str]:
@@ -464,7 +471,7 @@ def _run_quick(root: Path, todo: list[Bench], jobs: int) -> tuple[dict, str]:
         with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
             futures = {
                 pool.submit(_quick_task, b.name, [str(root / b.file), "--quick"], str(root.parent)): b
-                for b in _quick_order(root, todo)
+                for b in _longest_first(root, todo, quick=True)
             }
             for fut in as_completed(futures):
                 name = futures[fut].name
@@ -473,9 +480,7 @@ def _run_quick(root: Path, todo: list[Bench], jobs: int) -> tuple[dict, str]:
                 except Exception as err:  # the worker died (a crash in compiled code, out of memory)
                     print(f"jsnap bench: {name}: worker failed ({type(err).__name__}: {err})", file=sys.stderr)
                     rc, dt = 1, float("nan")
-                status = "ok" if rc == 0 else f"FAILED (exit {rc})"
-                print(f"jsnap bench: {name} {status} in {dt:.0f} s", file=sys.stderr, flush=True)
-                times[name] = {"seconds": round(dt, 1), "ok": rc == 0}
+                times[name] = _done(name, rc, dt)
     finally:
         os.environ["XLA_FLAGS"] = old
         if not old:
@@ -483,14 +488,12 @@ def _run_quick(root: Path, todo: list[Bench], jobs: int) -> tuple[dict, str]:
     return {b.name: times[b.name] for b in todo if b.name in times}, flags
 
 
-def _run_script(root: Path, b: Bench) -> tuple[int, float]:
+def _run_script(root: Path, b: Bench) -> dict:
     """One script of a full run in its own process (its timings start from a clean process)."""
     print(f"jsnap bench: {b.name} ...", file=sys.stderr, flush=True)
     t0 = time.perf_counter()
     rc = subprocess.call([sys.executable, str(root / b.file), *b.args], cwd=root.parent)
-    dt = time.perf_counter() - t0
-    print(f"jsnap bench: {b.name} {'ok' if rc == 0 else f'FAILED (exit {rc})'} in {dt:.0f} s", file=sys.stderr)
-    return rc, dt
+    return _done(b.name, rc, time.perf_counter() - t0)
 
 
 def _run_full(root: Path, todo: list[Bench], jobs: int) -> tuple[dict, dict]:
@@ -500,20 +503,16 @@ def _run_full(root: Path, todo: list[Bench], jobs: int) -> tuple[dict, dict]:
     are compared with differentiation_check's converged gradient)."""
     from concurrent.futures import ThreadPoolExecutor
 
-    untimed = [b for b in todo if not b.timed]
-    path = root / "results" / "bench_times.json"
-    last = json.loads(path.read_text()).get("scripts", {}) if path.is_file() else {}
-    untimed.sort(key=lambda b: -last.get(b.name, {}).get("seconds", float("inf")))
+    untimed = _longest_first(root, [b for b in todo if not b.timed], quick=False)
     times = {}
     t0 = time.perf_counter()
     with ThreadPoolExecutor(max_workers=jobs) as pool:
-        for b, (rc, dt) in zip(untimed, pool.map(lambda b: _run_script(root, b), untimed), strict=True):
-            times[b.name] = {"seconds": round(dt, 1), "ok": rc == 0, "timed": False}
+        for b, entry in zip(untimed, pool.map(lambda b: _run_script(root, b), untimed), strict=True):
+            times[b.name] = {**entry, "timed": False}
     untimed_wall = time.perf_counter() - t0
     for b in todo:
         if b.timed:
-            rc, dt = _run_script(root, b)
-            times[b.name] = {"seconds": round(dt, 1), "ok": rc == 0, "timed": True}
+            times[b.name] = {**_run_script(root, b), "timed": True}
     how = {"untimed_workers": jobs, "untimed_seconds": round(untimed_wall, 1)}
     return {b.name: times[b.name] for b in todo}, how
 
