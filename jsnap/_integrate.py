@@ -36,6 +36,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.linalg as sla
 import scipy.sparse as sp
 
 from jsnap._fem import lame
@@ -158,20 +159,65 @@ def system_data(blocks: SparseBlocks, mat: Material):
     return k, m, d
 
 
+# Below this order the dense inverse stays in XLA: the host call's overhead is not worth it.
+_HOST_INVERSE_MIN = 512
+
+
+def _host_spd_inverse(S):
+    """LAPACK potrf + potri on the host (scipy's LAPACK, the one XLA:CPU calls as well): n^3
+    flops, against 7n^3/3 for a Cholesky followed by two triangular solves with n right-hand
+    sides, which is how XLA inverts. 5742 dof, 2 cores: 3.1 s against 5.0 s. A matrix that is
+    not positive definite gives NaN, as ``jnp.linalg.cholesky`` does."""
+
+    def host(a):
+        a = np.asarray(a)
+        potrf, potri = sla.get_lapack_funcs(("potrf", "potri"), (a,))
+        c, info = potrf(a, lower=True, clean=False)
+        if info == 0:
+            c, info = potri(c, lower=True, overwrite_c=True)
+        if info != 0:
+            return np.full(a.shape, np.nan, a.dtype)
+        return c
+
+    L = jax.pure_callback(host, jax.ShapeDtypeStruct(S.shape, S.dtype), S, vmap_method="sequential")
+    L = jnp.tril(L)  # potri fills the lower triangle only
+    return L + jnp.tril(L, -1).T
+
+
+def _xla_spd_inverse(S):
+    chol = jnp.linalg.cholesky(S)
+    S_inv = jax.scipy.linalg.cho_solve((chol, True), jnp.eye(S.shape[0], dtype=S.dtype))
+    return 0.5 * (S_inv + S_inv.T)
+
+
+@jax.custom_jvp
+def spd_inverse(S):
+    """Inverse of the symmetric positive definite ``S`` (only its lower triangle is read on the
+    CPU), symmetric to the last bit. On the CPU, from order ``_HOST_INVERSE_MIN`` up, by LAPACK's
+    potri (2.3x fewer flops than XLA's route); elsewhere by XLA's Cholesky. Differentiable:
+    ``d(S^-1) = -S^-1 dS S^-1``; batches under ``vmap`` one matrix at a time."""
+    if S.shape[-1] < _HOST_INVERSE_MIN:
+        return _xla_spd_inverse(S)
+    return jax.lax.platform_dependent(S, cpu=_host_spd_inverse, default=_xla_spd_inverse)
+
+
+@spd_inverse.defjvp
+def _spd_inverse_jvp(primals, tangents):
+    (S,), (dS,) = primals, tangents
+    X = spd_inverse(S)
+    return X, -X @ dS @ X
+
+
 def pmi_operator(blocks: SparseBlocks, mat: Material, dt) -> PMIOperator:
     """Build the PMI operator (float64) for ``mat`` and time step ``dt`` (s).
 
-    Cost: one dense Cholesky factorisation and inverse of S (n^3); differentiable with respect
+    Cost: one dense inverse of S (``spd_inverse``, n^3); differentiable with respect
     to every field of ``mat``.
     """
     dt = jnp.asarray(dt, jnp.float64)
     k, m, d = system_data(blocks, mat)
     S = blocks.dense(2.0 * m / dt + d + 0.5 * dt * k)
-    S = 0.5 * (S + S.T)
-    chol = jnp.linalg.cholesky(S)
-    eye = jnp.eye(S.shape[0], dtype=S.dtype)
-    S_inv = jax.scipy.linalg.cho_solve((chol, True), eye)
-    return PMIOperator(0.5 * (S_inv + S_inv.T), k, m, d, dt)
+    return PMIOperator(spd_inverse(0.5 * (S + S.T)), k, m, d, dt)
 
 
 def pmi_rhs(blocks: SparseBlocks, op: PMIOperator, x, v, f):

@@ -75,7 +75,7 @@ import scipy.sparse.linalg as spla
 import skfem
 
 from jsnap._fem import _ELEMENTS, Assembly, _k_lam, _k_mu, _m1, lame
-from jsnap._integrate import Material
+from jsnap._integrate import Material, spd_inverse
 from jsnap._neural_sdf import _checksum, cache_dir
 
 __all__ = [
@@ -698,7 +698,7 @@ class ReducedSocket(eqx.Module):
         return lam * self.kl + mu * self.km
 
     def prepare(self, material: Material, dt) -> ReducedOperator:
-        """Reduced operator for ``material`` and ``dt`` (s): one dense Cholesky of (r, r),
+        """Reduced operator for ``material`` and ``dt`` (s): one dense inverse of (r, r),
         differentiable with respect to every field of ``material``. The interface coupling is
         folded into ``S_r``, so its elimination costs nothing per step."""
         dt = jnp.asarray(dt, jnp.float64)
@@ -709,9 +709,7 @@ class ReducedSocket(eqx.Module):
         S_el = 2.0 * M / dt + material.alpha * M + material.beta * K_el + 0.5 * dt * K_el
         sc = bc + 0.5 * dt * kc
         S = S_el + sc * (Dg.T @ Dg)
-        chol = jnp.linalg.cholesky(0.5 * (S + S.T))
-        S_inv = jax.scipy.linalg.cho_solve((chol, True), jnp.eye(S.shape[0], dtype=S.dtype))
-        S_inv = 0.5 * (S_inv + S_inv.T)
+        S_inv = spd_inverse(0.5 * (S + S.T))
         NS = jnp.einsum("cdr,rs->cds", self.node_rows, S_inv)
         return ReducedOperator(S_inv, S_el, (2.0 / dt) * M, K_el, M, kc, sc, NS, dt)
 

@@ -95,6 +95,36 @@ def test_vmap_equals_loop_and_no_recompile(small_arm):
     assert fn._cache_size() == 1  # new parameter values, same compiled function
 
 
+@pytest.mark.parametrize("host", [True, False])
+def test_spd_inverse(monkeypatch, host):
+    """Both routes of ``spd_inverse`` (LAPACK potri on the host, XLA's Cholesky) against
+    scipy's general inverse, exactly symmetric, its derivative against central differences,
+    batched under vmap, and NaN (not a wrong answer) for a matrix that is not positive definite."""
+    monkeypatch.setattr(I, "_HOST_INVERSE_MIN", 0 if host else 10**9)
+    rng = np.random.default_rng(3)
+    n = 120
+    A = rng.standard_normal((n, n))
+    S = A @ A.T / n + np.eye(n)
+    X = np.asarray(jax.jit(I.spd_inverse)(jnp.asarray(S)))
+    np.testing.assert_allclose(X, sl.inv(S), rtol=0, atol=1e-12 * np.abs(X).max())
+    assert np.array_equal(X, X.T)
+    dS = rng.standard_normal((n, n))
+    dS = dS + dS.T
+    W = rng.standard_normal((n, n))
+
+    def f(S):
+        return jnp.sum(W * jnp.sin(I.spd_inverse(S)))
+
+    g = jax.jit(jax.grad(f))(jnp.asarray(S))
+    h = 1e-6
+    fd = (f(jnp.asarray(S + h * dS)) - f(jnp.asarray(S - h * dS))) / (2 * h)
+    assert float(jnp.sum(g * dS)) == pytest.approx(float(fd), rel=1e-6)
+    batched = jax.jit(jax.vmap(I.spd_inverse))(jnp.stack([jnp.asarray(S), jnp.asarray(2 * S)]))
+    np.testing.assert_allclose(batched[1], X / 2, rtol=0, atol=1e-12 * np.abs(X).max())
+    indefinite = S - 2 * np.eye(n) * np.abs(S).sum(1).max()
+    assert bool(jnp.isnan(jax.jit(I.spd_inverse)(jnp.asarray(indefinite))).all())
+
+
 # --------------------------------------------------------------------------------------------
 # Modal (diagonalised) PMI
 # --------------------------------------------------------------------------------------------
