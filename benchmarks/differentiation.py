@@ -28,7 +28,10 @@ solves), its compiled gradient reused by the check, two FD steps.
 ``--part check`` runs only 2. and writes differentiation_check{,_coarse}.{json,png} (the FD
 sweep); ``--part cost`` runs only 1. and takes 2. from that file when it was made for the same
 scene (3. then compares them). ``jsnap bench`` runs the check among the untimed scripts and the
-cost alone on the machine, since its timings are results. Without ``--part``, both, one after
+cost alone on the machine, since its timings are results. ``--part noise`` (not run by
+``jsnap bench``) measures what limits the check: the loss's round-off, as the second differences
+of L at E (1 + k 1e-6), k = -2 .. 2, for each dense-inverse route (``noise``), and what it
+predicts for each parameter's quotients. Without ``--part``, both, one after
 the other. Writes benchmarks/results/differentiation{,_coarse,_quick}.{json,png}.
 """
 
@@ -169,6 +172,45 @@ def _friction_losses(scene, x0, frictions):
     return [loss(prepared, jnp.asarray(m, jnp.float64)) for m in frictions]
 
 
+def noise(scene, check=None, k=(-2, -1, 0, 1, 2), h=1e-6):
+    """Round-off of the loss: its second differences at E (1 + k h) (a smooth function's are
+    ~h^2 L'' ~ 1e-11 here), for LAPACK's and XLA's dense inverse; with a saved ``check``, the
+    central quotient's round-off error sqrt(2) sigma / (2 h |x dL/dx|) it predicts at each
+    swept step, beside the measured error."""
+    from jsnap import _integrate
+
+    out = {}
+    for route, minimum in (("lapack_potri", _integrate._HOST_INVERSE_MIN), ("xla_cholesky", 10**9)):
+        old, _integrate._HOST_INVERSE_MIN = _integrate._HOST_INVERSE_MIN, minimum
+        try:
+            model = jsnap.build(scene.replace(TIGHT))
+            loss, x0 = _loss_fn(model)
+            f = jax.jit(loss)
+            L = np.array([float(f((x0[0] * (1 + j * h), *x0[1:]))) for j in k])
+        finally:
+            _integrate._HOST_INVERSE_MIN = old
+        d2 = np.diff(L, 2)
+        # iid errors of size sigma give second differences of variance 6 sigma^2
+        sig = float(np.sqrt(np.mean(d2**2) / 6))
+        out[route] = {"loss": L.tolist(), "second_differences": d2.tolist(), "sigma": sig}
+        print(route, out[route], flush=True)
+    sigma = max(r["sigma"] for r in out.values())
+    out["sigma"] = sigma
+    if check:
+        out["predicted"] = {
+            n: {
+                hs: {
+                    "round_off": np.sqrt(2) * sigma / (2 * float(hs) * abs(p["value"] * p["grad"])),
+                    "measured": v["rel_error"],
+                }
+                for hs, v in p["sweep"].items()
+            }
+            for n, p in check["params"].items()
+        }
+        print(out["predicted"], flush=True)
+    return out
+
+
 def check(scene, steps=STEPS, compiled=None):
     """The gradient check on the converged solve; ``compiled``: a tight cost row's functions."""
     if compiled and compiled["scene"].to_dict() == scene.replace(TIGHT).to_dict():
@@ -220,7 +262,8 @@ def main(argv=None):
     ap.add_argument("--coarse", action="store_true", help="P2 1.5 mm, 20 mm/s, converged-solve costs")
     ap.add_argument("--memory-limit", type=float, default=6.0, help="GB of temporaries above which not to run")
     ap.add_argument("--skip-cost", action="store_true")
-    ap.add_argument("--part", choices=("all", "check", "cost"), default="all", help="see the module docstring")
+    parts = ("all", "check", "cost", "noise")
+    ap.add_argument("--part", choices=parts, default="all", help="see the module docstring")
     a = ap.parse_args(argv)
     if a.quick and a.part != "all":
         ap.error("--quick runs both parts (its check reuses the cost row's compiled gradient)")
@@ -238,6 +281,12 @@ def main(argv=None):
     check_path = OUT / f"{stem}_check.json"
     # As it reads back from JSON (tuples become lists), to compare with a saved check's.
     header = json.loads(json.dumps({k: result[k] for k in ("changes", "damping", "fd_steps", "tight")}))
+    if a.part == "noise":
+        saved = json.loads(check_path.read_text()) if check_path.exists() else None
+        same = saved and saved.get("changes") == header["changes"]
+        result["noise"] = noise(scene, saved["check"] if same else None)
+        (OUT / f"{stem}_noise.json").write_text(json.dumps(result, indent=2))
+        return
     if a.part == "check":
         result["check"] = check(scene, STEPS)
         check_path.write_text(json.dumps(result, indent=2))
