@@ -71,14 +71,21 @@ def _scan_plain(model, prepared, state, controls, keep_x):
 
 
 def _loss_fn(model):
+    """``(loss, x0, arrays)``: ``loss(x, arrays)`` with the model's arrays an argument, not
+    closed over: as constants of the program XLA would fold the dense assembly of S into it at
+    every compile (~2.5 s and a 264 MB literal on the default mesh)."""
     base = model.params.replace(**DAMPING)
+    arrays, static = eqx.partition(model, eqx.is_array)
+    controls = model.trajectory()[1:]  # on the host, from the concrete model
 
-    def loss(x):
-        r = jsnap.rollout(model, base.replace(**dict(zip(NAMES, x, strict=True))), dtype="float64")
+    def loss(x, arrays):
+        m = eqx.combine(arrays, static)
+        params = base.replace(**dict(zip(NAMES, x, strict=True)))
+        r = jsnap.rollout(m, params, controls=controls, dtype="float64")
         return jnp.sum(r.insertion_force**2)
 
     x0 = tuple(jnp.asarray(getattr(base, n)) for n in NAMES)
-    return loss, x0
+    return loss, x0, arrays
 
 
 # Forward-pass seconds per tolerance (tight or not), timed once: the forward pass is the same
@@ -100,14 +107,14 @@ def cost(
     """One row of the cost table; ``keep`` (a dict) receives the compiled value_and_grad and the
     jitted loss, for the gradient check to reuse (the quick run)."""
     model = jsnap.build(scene.replace({"contact.gradient": gradient, **(TIGHT if tight else {})}))
-    loss, x0 = _loss_fn(model)
+    loss, x0, arrays = _loss_fn(model)
     original = _sim._scan
     if not checkpoint:
         _sim._scan = eqx.filter_jit(_scan_plain)
     try:
         vg = jax.jit(jax.value_and_grad(loss))
         t0 = time.perf_counter()
-        compiled = vg.lower(x0).compile()
+        compiled = vg.lower(x0, arrays).compile()
         t_compile = time.perf_counter() - t0
         mem = compiled.memory_analysis()
         temp_gb = mem.temp_size_in_bytes / 2**30
@@ -131,21 +138,22 @@ def cost(
             times = []
             for _ in range(repeats):
                 t0 = time.perf_counter()
-                v, g = compiled(x0)
+                v, g = compiled(x0, arrays)
                 jax.block_until_ready(g)
                 times.append(time.perf_counter() - t0)
             f = jax.jit(loss)
             if tight not in _FORWARD_S:
-                jax.block_until_ready(f(x0))
+                jax.block_until_ready(f(x0, arrays))
                 t0 = time.perf_counter()
-                jax.block_until_ready(f(x0))
+                jax.block_until_ready(f(x0, arrays))
                 _FORWARD_S[tight] = time.perf_counter() - t0
             row["forward_s"] = _FORWARD_S[tight]
             row["run_s"] = min(times)
             row["loss"] = float(v)
             row["grad"] = {n: float(gi) for n, gi in zip(NAMES, g, strict=True)}
             if keep is not None:
-                keep.update(vg=compiled, f=f, x0=x0, scene=scene.replace(TIGHT) if tight else scene)
+                scene_run = scene.replace(TIGHT) if tight else scene
+                keep.update(vg=compiled, f=f, x0=x0, arrays=arrays, scene=scene_run)
     finally:
         _sim._scan = original
     print({k: v for k, v in row.items() if k != "grad"}, flush=True)
@@ -164,12 +172,15 @@ def _friction_losses(scene, x0, frictions):
     params = model.params.replace(**DAMPING).replace(**dict(zip(NAMES, x0, strict=True)))
     prepared = jsnap.prepare(model, params)
 
-    @jax.jit
-    def loss(prepared, mu):
-        p = _sim.Prepared(prepared.params.replace(friction=mu), prepared.op)
-        return jnp.sum(jsnap.rollout(model, prepared=p, dtype="float64").insertion_force ** 2)
+    controls = model.trajectory()[1:]
 
-    return [loss(prepared, jnp.asarray(m, jnp.float64)) for m in frictions]
+    @eqx.filter_jit  # the model an argument, not constants (see _loss_fn)
+    def loss(model, prepared, mu):
+        p = _sim.Prepared(prepared.params.replace(friction=mu), prepared.op)
+        r = jsnap.rollout(model, prepared=p, controls=controls, dtype="float64")
+        return jnp.sum(r.insertion_force**2)
+
+    return [loss(model, prepared, jnp.asarray(m, jnp.float64)) for m in frictions]
 
 
 def noise(scene, check=None, k=(-2, -1, 0, 1, 2), h=1e-6):
@@ -184,9 +195,9 @@ def noise(scene, check=None, k=(-2, -1, 0, 1, 2), h=1e-6):
         old, _integrate._HOST_INVERSE_MIN = _integrate._HOST_INVERSE_MIN, minimum
         try:
             model = jsnap.build(scene.replace(TIGHT))
-            loss, x0 = _loss_fn(model)
+            loss, x0, arrays = _loss_fn(model)
             f = jax.jit(loss)
-            L = np.array([float(f((x0[0] * (1 + j * h), *x0[1:]))) for j in k])
+            L = np.array([float(f((x0[0] * (1 + j * h), *x0[1:]), arrays)) for j in k])
         finally:
             _integrate._HOST_INVERSE_MIN = old
         d2 = np.diff(L, 2)
@@ -214,14 +225,14 @@ def noise(scene, check=None, k=(-2, -1, 0, 1, 2), h=1e-6):
 def check(scene, steps=STEPS, compiled=None):
     """The gradient check on the converged solve; ``compiled``: a tight cost row's functions."""
     if compiled and compiled["scene"].to_dict() == scene.replace(TIGHT).to_dict():
-        x0, f = compiled["x0"], compiled["f"]
+        x0, f, arrays = compiled["x0"], compiled["f"], compiled["arrays"]
         t0 = time.perf_counter()
-        v, g = compiled["vg"](x0)
+        v, g = compiled["vg"](x0, arrays)
     else:
         model = jsnap.build(scene.replace(TIGHT))
-        loss, x0 = _loss_fn(model)
+        loss, x0, arrays = _loss_fn(model)
         t0 = time.perf_counter()
-        v, g = jax.jit(jax.value_and_grad(loss))(x0)
+        v, g = jax.jit(jax.value_and_grad(loss))(x0, arrays)
         f = jax.jit(loss)
     t_grad = time.perf_counter() - t0
     out = {"loss": float(v), "grad_seconds_with_compile": t_grad, "params": {}}
@@ -235,7 +246,7 @@ def check(scene, steps=STEPS, compiled=None):
                 for sign in (1, -1):
                     x = list(x0)
                     x[i] = x0[i] + sign * d
-                    losses.append(f(tuple(x)))
+                    losses.append(f(tuple(x), arrays))
         pairs = zip(steps, ds, strict=True)
         fds = {h: float((losses[2 * k] - losses[2 * k + 1]) / (2 * d)) for k, (h, d) in enumerate(pairs)}
         # The plateau: the two consecutive steps whose quotients agree best; the smaller one is

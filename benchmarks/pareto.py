@@ -61,7 +61,7 @@ from pathlib import Path
 
 import jax
 import numpy as np
-from _common import two_step_compile_seconds
+from _common import code_version, two_step_compile_seconds
 
 import jsnap
 
@@ -144,6 +144,7 @@ def run(scene, timed: bool = True) -> dict:
         "max_overflow": int(np.asarray(res.overflow).max()),
         "iterations_mean": float(np.asarray(res.iterations).mean()),
         "t": np.asarray(res.t, np.float64).tolist(),
+        "travel": np.asarray(res.travel, np.float64).tolist(),
         "insertion_force": F.tolist(),
     }
     if model.host.reduction is not None:
@@ -220,7 +221,7 @@ def main(argv=None):
     ref["changes"] = ref_changes
     t_ref, F_ref = np.asarray(ref["t"]), np.asarray(ref["insertion_force"])
     peak = float(F_ref.max())
-    print({k: v for k, v in ref.items() if k not in ("t", "insertion_force")}, flush=True)
+    print({k: v for k, v in ref.items() if k not in ("t", "travel", "insertion_force")}, flush=True)
 
     rows = []
     for factor, label, changes in settings:
@@ -232,7 +233,7 @@ def main(argv=None):
         r["rmse_rise_rel_peak"] = float(np.sqrt(np.mean((F[rise] - F_ref[rise]) ** 2)) / peak)
         r["load_average"] = os.getloadavg()[0]
         rows.append(r)
-        print({k: v for k, v in r.items() if k not in ("t", "insertion_force")}, flush=True)
+        print({k: v for k, v in r.items() if k not in ("t", "travel", "insertion_force")}, flush=True)
     load.append(os.getloadavg()[0])
     front = pareto_front(rows)
     default = rows[0]
@@ -278,6 +279,7 @@ def main(argv=None):
         json.dumps(
             {
                 "machine": machine,
+                "code": code_version(),
                 "headline": headline,
                 "reference": ref,
                 "front": [r["label"] for r in front],

@@ -71,7 +71,7 @@ def _per_call_rate(model, prepared, controls) -> float:
     return len(controls) / best
 
 
-def _socket_us_per_step(model, prepared, n: int = 300) -> float:
+def _socket_us_per_step(model, prepared, n: int = 100) -> float:
     """Microseconds per step of the socket's own work (what ``step`` asks of it: free velocity,
     candidate and stencil displacements, the contact operator of ``capacity`` points, their
     velocity, energy and base wrench), without the collision and the contact solve."""

@@ -4,11 +4,12 @@ regenerate the table in ``benchmarks/README.md`` from their results.
 Each benchmark is a script ``benchmarks/<name>.py`` that writes ``benchmarks/results/<stem>.json``
 (and PNG charts); each runs in its own process in a full run. A full run first runs the untimed
 scripts (results that are accuracies only: ``Bench.timed`` false), ``N`` at a time with
-``--jobs N`` (default: 2, or the CPU count if lower), then the timed ones one at a time, each alone on the machine, so that
-their timings are undisturbed. ``--quick`` runs the scripts' quick variants (CI runs it so the
-benchmarks never rot): smoke runs whose time is mostly XLA compilation, so they run in ``N``
-worker processes (default: 2, or the CPU count if lower), each running scripts in-process one
-after another, and are compiled with ``QUICK_XLA_FLAGS``; their timings are not headline numbers.
+``--jobs N`` (default 1), then the timed ones one at a time, each alone on the machine, so
+that their timings are undisturbed. ``--quick`` runs the scripts' quick variants (CI runs it
+so the benchmarks never rot): smoke runs whose time is mostly XLA compilation, so they run in
+``N`` worker processes (default: 2, or the CPU count if lower), each running scripts in-process
+one after another, and are compiled with ``QUICK_XLA_FLAGS``; their timings are not headline
+numbers.
 
 The benchmarks live in the source tree, not in the installed package: run ``jsnap bench`` from
 a checkout (or set ``JSNAP_BENCHMARKS`` to the folder).
@@ -248,7 +249,6 @@ BENCHMARKS = [
     ),
     Bench("sdf_accuracy", "neural SDF accuracy and training time (default plug)", False, _sdf_accuracy),
     Bench("sdf_speed", "SDF query speed: neural against exact mesh", True, _sdf_speed),
-    Bench("sdf_scene", "default scene with each SDF: force RMSE and step rate", True, _sdf_scene),
     Bench("contact_squeeze", "APGD against PGS on the symmetric squeeze", True, _contact_squeeze),
     Bench(
         "fem_convergence",
@@ -290,6 +290,14 @@ BENCHMARKS = [
     ),
     Bench("identify", "E and friction from a noisy force (finer full model + 5 % noise)", True, _identify),
     Bench("pareto", "speed against accuracy: force error vs steps/s over solver settings", True, _pareto),
+    # After pareto: its default, neural and mesh SDF runs are these (sdf_scene.py --from-pareto).
+    Bench(
+        "sdf_scene",
+        "default scene with each SDF: force RMSE and step rate",
+        True,
+        _sdf_scene,
+        args=("--from-pareto",),
+    ),
     Bench("frequency", "steps/s of Models 1-4, ~660 and ~1300 dof (the paper's Fig. 4)", True, _frequency),
     Bench("throughput", "batched (vmap) scene-steps/s of the reduced model vs batch size", True, _throughput),
 ]
@@ -532,11 +540,11 @@ def main(names: list[str], quick: bool, list_only: bool, jobs: int | None = None
     if jobs is not None and jobs < 1:
         print(f"jsnap bench: --jobs {jobs}: give a count >= 1", file=sys.stderr)
         return 2
-    # Two workers by default. Quick: compilation, 1.3x faster here. Full (the untimed scripts
-    # only): ~10 % faster on this 2-core machine (933 s against ~1035 s one at a time, session
-    # 5), memory-bound as they are; each script is stretched 1.2-4.5x, so the incidental
-    # timings these scripts record (build, rollout seconds) are not measurements.
-    jobs = jobs or min(2, os.cpu_count() or 1)
+    # Quick: two workers by default (compilation, 1.3x faster here). Full: one. Two at a time
+    # ran the untimed scripts hardly faster on this 2-core machine, memory-bound as they are
+    # (session 6: 830 s, about the sum of their times alone; session 5: 933 s against ~1035 s),
+    # and stretched each ~2x, incidental timings included.
+    jobs = jobs or (min(2, os.cpu_count() or 1) if quick else 1)
     todo = [known[n] for n in names] if names else benches
     t_all = time.perf_counter()
     if quick:

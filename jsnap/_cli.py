@@ -301,7 +301,7 @@ def main(argv=None) -> int:
         "--jobs",
         type=int,
         default=None,
-        help="processes for the quick scripts, or for the untimed ones of a full run (default 2)",
+        help="processes for the quick scripts (default 2), for the untimed ones of a full run (default 1)",
     )
     bench.add_argument("--list", action="store_true", help="list the benchmarks and exit")
     fit = sub.add_parser("fit", help="fit E, friction, damping to a measured force history (CSV)")
