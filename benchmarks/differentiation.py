@@ -160,7 +160,7 @@ def cost(
     return row
 
 
-def _friction_losses(scene, x0, frictions):
+def _friction_losses(model, x0, frictions):
     """The loss at each friction (the other parameters at ``x0``).
 
     Friction does not enter the PMI operator, so the FD points share one ``prepare`` (on the
@@ -168,10 +168,8 @@ def _friction_losses(scene, x0, frictions):
     ``vmap`` the ten points took as long as alone (measured 43 against 47 s for six), since a
     converged contact solve, not the pass over S^-1, bounds a step and a batched while-loop
     runs until its slowest member converges."""
-    model = jsnap.build(scene)
     params = model.params.replace(**DAMPING).replace(**dict(zip(NAMES, x0, strict=True)))
     prepared = jsnap.prepare(model, params)
-
     controls = model.trajectory()[1:]
 
     @eqx.filter_jit  # the model an argument, not constants (see _loss_fn)
@@ -224,12 +222,12 @@ def noise(scene, check=None, k=(-2, -1, 0, 1, 2), h=1e-6):
 
 def check(scene, steps=STEPS, compiled=None):
     """The gradient check on the converged solve; ``compiled``: a tight cost row's functions."""
+    model = jsnap.build(scene.replace(TIGHT))
     if compiled and compiled["scene"].to_dict() == scene.replace(TIGHT).to_dict():
         x0, f, arrays = compiled["x0"], compiled["f"], compiled["arrays"]
         t0 = time.perf_counter()
         v, g = compiled["vg"](x0, arrays)
     else:
-        model = jsnap.build(scene.replace(TIGHT))
         loss, x0, arrays = _loss_fn(model)
         t0 = time.perf_counter()
         v, g = jax.jit(jax.value_and_grad(loss))(x0, arrays)
@@ -238,15 +236,11 @@ def check(scene, steps=STEPS, compiled=None):
     out = {"loss": float(v), "grad_seconds_with_compile": t_grad, "params": {}}
     for i, n in enumerate(NAMES):
         ds = [h * float(x0[i]) for h in steps]
+        points = [x0[i] + sign * d for d in ds for sign in (1, -1)]
         if n == "friction":
-            losses = _friction_losses(scene.replace(TIGHT), x0, [x0[i] + s * d for d in ds for s in (1, -1)])
+            losses = _friction_losses(model, x0, points)
         else:
-            losses = []
-            for d in ds:
-                for sign in (1, -1):
-                    x = list(x0)
-                    x[i] = x0[i] + sign * d
-                    losses.append(f(tuple(x), arrays))
+            losses = [f((*x0[:i], p, *x0[i + 1 :]), arrays) for p in points]
         pairs = zip(steps, ds, strict=True)
         fds = {h: float((losses[2 * k] - losses[2 * k + 1]) / (2 * d)) for k, (h, d) in enumerate(pairs)}
         # The plateau: the two consecutive steps whose quotients agree best; the smaller one is

@@ -53,8 +53,8 @@ def run(sdf, changes, steps=None, repeats=2):
     }
 
 
-SDF_KINDS = ("mesh", "neural", "analytic")
-PARETO_CHANGES = {"analytic": {}, "neural": {"solver.sdf": "neural"}, "mesh": {"solver.sdf": "mesh"}}
+SDF_KINDS = ("mesh", "neural", "analytic")  # the order of the rows and of PARETO_CHANGES
+PARETO_CHANGES = {"mesh": {"solver.sdf": "mesh"}, "neural": {"solver.sdf": "neural"}, "analytic": {}}
 # What a row holds (pareto's rows hold the same, under the same names).
 ROW_KEYS = (
     "steps",
@@ -84,7 +84,6 @@ def from_pareto(code):
     return rows, path.name
 
 
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="coarse mesh (2.0 mm), the first 20 steps")
@@ -103,7 +102,6 @@ def main(argv=None):
             sdf: run(sdf, changes, steps, 0 if sdf == "mesh" and not a.quick else repeats)
             for sdf in SDF_KINDS
         }
-    rows = {sdf: rows[sdf] for sdf in SDF_KINDS}
     ref = np.asarray(rows["mesh"]["insertion_force"])
     for r in rows.values():
         F = np.asarray(r["insertion_force"])
