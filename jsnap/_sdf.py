@@ -405,9 +405,16 @@ def _closest_on_triangle(ap, t):
 
 
 def _nearest_triangle(terms, p):
-    """Index of the triangle nearest to one point ``p`` (3,), brute force over all F."""
+    """Index of the triangle nearest to one point ``p`` (3,), brute force over all F.
+
+    The lowest index among ties, as ``argmin``; found as a minimum and then the first index that
+    attains it, two plain reductions that XLA vectorises (its fused argmin, a reduction over
+    (value, index) pairs, measured 1.3x slower on CPU for 384 points and 5516 triangles).
+    """
     diff, _ = _closest_on_triangle(p[:, None] - terms["a"], terms)
-    return jnp.argmin(_dot3(diff, diff))
+    d2 = _dot3(diff, diff)
+    n = d2.shape[0]
+    return jnp.min(jnp.where(d2 == jnp.min(d2), jnp.arange(n, dtype=jnp.int32), n - 1))
 
 
 def _mesh_eval(sdf, p, chunk):

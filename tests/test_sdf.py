@@ -342,6 +342,45 @@ def test_mesh_sdf_chunking_jit_vmap(plug):
     np.testing.assert_array_equal(mesh_sdf(sdf, pts.reshape(2, 250, 3)).reshape(-1), ref)
 
 
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+@pytest.mark.parametrize("n_contact", [40, 300])
+def test_scene_mesh_query_exact_where_contact_needs_it(plug, n_contact, dtype):
+    """The step's mesh query (``_sim._mesh_plug_sdf``) against the brute force at every point.
+
+    40 points within the margin: the usual query (the ``_MESH_SDF_FEW`` nearest evaluated);
+    300: more than that, the fallback to ``_MESH_SDF_POINTS``. Each case checks which regime its
+    points are in, so that both branches are exercised.
+    """
+    from types import SimpleNamespace
+
+    from jsnap import _sim
+
+    mesh, sdf = plug
+    margin = 0.02
+    rng = np.random.default_rng(11)
+    # Points within the margin, and others (near and far) that are no candidates.
+    rest = _test_points(mesh, rng, 350, 350)
+    rest = rest[np.asarray(mesh_sdf(sdf, rest)) > 2 * margin]
+    pts = np.concatenate([_test_points(mesh, rng, n_near=n_contact, n_far=0, band=margin), rest])
+    sdf = sdf.astype(dtype)
+    model = SimpleNamespace(
+        mesh_sdf=sdf, plug_half=jnp.asarray(H, dtype), plug_radius=jnp.asarray(R, dtype), margin=margin
+    )
+    q = jnp.asarray(pts, dtype)
+    phi, n = jax.jit(lambda q: _sim._mesh_plug_sdf(model, q))(q)
+    ref, ref_n = mesh_sdf_and_normal(sdf, q)
+    near = np.asarray(ref < margin + _sim._NEAR_SLACK)
+    few = np.sum(near) <= _sim._MESH_SDF_FEW
+    assert few == (n_contact == 40) and np.sum(near) <= _sim._MESH_SDF_POINTS
+    tol = 1e-6 if dtype == jnp.float32 else 1e-13
+    # Exact (the same brute force) where a contact decision needs it; a lower bound elsewhere.
+    np.testing.assert_allclose(phi[near], ref[near], atol=tol, rtol=0)
+    np.testing.assert_allclose(n[near], ref_n[near], atol=100 * tol, rtol=0)
+    assert np.all(np.asarray(phi) <= np.asarray(ref) + tol)
+    np.testing.assert_array_equal(phi < margin, ref < margin)
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=10 * tol)
+
+
 def test_float32(plug):
     mesh, sdf = plug
     rng = np.random.default_rng(8)
