@@ -18,7 +18,7 @@ from 936 to 1344 and 1407).
 
 Timings: the PMI operator is prepared once, outside them. Scan: the first call of
 ``jsnap.rollout`` compiles and runs; the steady time is the median of ``--runs`` further calls,
-and the compile time is the first call minus the steady time (Model 1, ~20 s a pass, is not run
+and the compile time is the first call minus the steady time (Model 1, ~7 s a pass, is not run
 again: its compile time is a two-step rollout's first call, its run time the first call's
 less that, and it makes one Python pass). Python: a jitted
 ``step(state, control)`` is called once per step of the same motion from a Python loop; its
@@ -119,10 +119,10 @@ def run(mesh: str, number: int, changes: dict, runs: int) -> dict:
     model = jsnap.build(scene)
     build_s = time.perf_counter() - t0
     prepared = jsnap.prepare(model)
-    # Model 1 (~10 steps/s: ~20 s a pass) is not run again in the scan (its compile time is
-    # measured apart) and is timed once from Python over its first SLOW_PYTHON_STEPS steps: the
-    # 30-minute budget of `jsnap bench`. (In the quick run's 5-step motion a second call is
-    # cheaper than the two-step compile.)
+    # Model 1 (~35 steps/s: ~7 s a pass; ~20 s before session 7) is not run again in the scan
+    # (its compile time is measured apart) and is timed once from Python over its first
+    # SLOW_PYTHON_STEPS steps: the 30-minute budget of `jsnap bench`. (In the quick run's
+    # 5-step motion a second call is cheaper than the two-step compile.)
     slow = number == 1 and not changes
     res, first, scan_times = scan_timing(model, prepared, 0 if slow else runs)
     n = int(res.energy.shape[0])

@@ -151,8 +151,9 @@ def run(scene, timed: bool = True) -> dict:
         row["orders"] = list(model.socket.orders)
         row["reduction_cached"] = bool(model.host.reduction["cached"])
     if timed and first > SLOW_FIRST_CALL_S:
-        # A slow rollout (the exact mesh SDF: ~40 s) is not run again: its compile time is that
-        # of a two-step rollout (the same scan body, compiled anew for the other length).
+        # A slow rollout (none since session 7; the exact mesh SDF took ~40 s) is not run again:
+        # its compile time is that of a two-step rollout (the same scan body, compiled anew for
+        # the other length).
         compile_s = two_step_compile_seconds(model, prepared)
         best = first - compile_s
         row.update(
