@@ -174,28 +174,34 @@ def _mesh_plug_sdf(model: Model, q):
     rounded box's distance is a lower bound of the mesh's, inside and out. A point whose bound is
     at least the margin (plus ``_NEAR_SLACK``) is no contact candidate whatever its exact
     distance, and keeps the bound; the brute-force mesh distance is evaluated at the points with
-    the lowest bounds: ``_MESH_SDF_FEW`` of them when that covers every point below the margin
-    (nearly every step), else ``_MESH_SDF_POINTS``. Every contact decision (candidates,
-    predict-correct) is the one the exact distance at every point would give, as long as at most
-    ``_MESH_SDF_POINTS`` points lie within the margin. Under ``vmap`` the ``cond`` evaluates
-    both branches.
+    the lowest bounds, in blocks of ``_MESH_SDF_FEW``: as many blocks as the points below the
+    margin need (one on nearly every step), up to ``_MESH_SDF_POINTS`` points. Every contact
+    decision (candidates, predict-correct) is the one the exact distance at every point would
+    give, as long as at most ``_MESH_SDF_POINTS`` points lie within the margin. The blocks are a
+    scan over one compiled copy of the search (each skipped by a ``cond`` when not needed; under
+    ``vmap`` every block is evaluated).
     """
     n = q.shape[0]
     if n <= _MESH_SDF_FEW:
         return mesh_sdf_and_normal(model.mesh_sdf, q)
     lower, lower_normal = rounded_box_sdf_and_normal(q, model.plug_half, model.plug_radius)
-
-    def exact_at(k):
-        def evaluate(_):
-            _, near = jax.lax.top_k(-lower, k)
-            phi, normal = mesh_sdf_and_normal(model.mesh_sdf, q[near])
-            return lower.at[near].set(phi), lower_normal.at[near].set(normal)
-
-        return evaluate
-
+    n_blocks = -(-min(n, _MESH_SDF_POINTS) // _MESH_SDF_FEW)
+    # Lowest bounds first; with fewer points than the blocks hold, the last block overlaps the one
+    # before (dynamic_slice keeps it in range), evaluating some points twice.
+    _, order = jax.lax.top_k(-lower, min(n, n_blocks * _MESH_SDF_FEW))
     n_near = jnp.sum(lower < model.margin + _NEAR_SLACK)
-    few, many = exact_at(_MESH_SDF_FEW), exact_at(min(n, _MESH_SDF_POINTS))
-    return jax.lax.cond(n_near <= _MESH_SDF_FEW, few, many, None)
+
+    def block(carry, k):
+        def evaluate(c):
+            near = jax.lax.dynamic_slice_in_dim(order, k * _MESH_SDF_FEW, _MESH_SDF_FEW)
+            phi, normal = mesh_sdf_and_normal(model.mesh_sdf, q[near])
+            return c[0].at[near].set(phi), c[1].at[near].set(normal)
+
+        # Block 0 always; a later one only when the points below the margin reach into it.
+        return jax.lax.cond(k * _MESH_SDF_FEW < jnp.maximum(n_near, 1), evaluate, lambda c: c, carry), None
+
+    (phi, normal), _ = jax.lax.scan(block, (lower, lower_normal), jnp.arange(n_blocks))
+    return phi, normal
 
 
 def _frames(n):

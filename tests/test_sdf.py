@@ -379,6 +379,12 @@ def test_scene_mesh_query_exact_where_contact_needs_it(plug, n_contact, dtype):
     assert np.all(np.asarray(phi) <= np.asarray(ref) + tol)
     np.testing.assert_array_equal(phi < margin, ref < margin)
     np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=10 * tol)
+    # Fewer points than the blocks hold (the last block overlaps the one before).
+    sub = q[:200]
+    phi_s, _ = jax.jit(lambda q: _sim._mesh_plug_sdf(model, q))(sub)
+    near_s = near[:200]
+    np.testing.assert_allclose(phi_s[near_s], ref[:200][near_s], atol=tol, rtol=0)
+    np.testing.assert_array_equal(phi_s < margin, ref[:200] < margin)
 
 
 def test_float32(plug):
