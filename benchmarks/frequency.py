@@ -24,8 +24,7 @@ less that, and it makes one Python pass). Python: a jitted
 ``step(state, control)`` is called once per step of the same motion from a Python loop; its
 first call (compile + one step) minus a steady step is its compile time, and the rate is the
 median over ``--runs`` passes through the motion. Every run covers the scene's whole motion
-(233 steps, 2.32 mm at 10 mm/s; contact from the second step on), but Model 1's single Python
-pass, which covers its first 80 steps (``python_steps``).
+(233 steps, 2.32 mm at 10 mm/s; contact from the second step on).
 
 ``--quick``: the coarse mesh only, Models 1 and 4 only, one timed run each, and a 5-step motion
 (0.1 mm at 20 mm/s), for CI: it checks that everything runs, its rates are rough. If the neural
@@ -61,11 +60,6 @@ MODELS = {
     3: ("segmented", "neural", "segmented, neural SDF"),
     4: ("reduced", "neural", "segmented + reduced, neural SDF"),
 }
-# Model 1's Python pass covers the first 80 steps (0.8 mm, in contact from the second): its step
-# (~90 ms, the exact mesh distance at the points nearest the plug, the same work every step) dwarfs
-# the ~0.1 ms of a call from Python, and its scan and Python rates agreed within 0.3 % over the
-# whole motion (session 5: 10.90 and 10.89 steps/s).
-SLOW_PYTHON_STEPS = 80
 QUICK_MOTION = {"motion.stroke": 0.1, "motion.speed": 20.0}  # 5 steps of 1 ms
 
 
@@ -85,11 +79,11 @@ def neural_cached(scene) -> bool:
     return cache_path(cache_key(rounded_box_mesh(half, radius), NeuralSDFConfig())).is_file()
 
 
-def python_timing(model, prepared, runs: int, steps: int | None = None):
-    """(first call seconds: compile + one step, seconds of each pass through the motion or its
-    first ``steps`` steps) of a jitted step called once per step from Python."""
+def python_timing(model, prepared, runs: int):
+    """(first call seconds: compile + one step, seconds of each pass through the motion) of a
+    jitted step called once per step from Python."""
     one, dyn, state0 = jitted_step(model, prepared)
-    controls = jnp.asarray(model.trajectory()[1:], state0.x.dtype)[:steps]
+    controls = jnp.asarray(model.trajectory()[1:], state0.x.dtype)
     t0 = time.perf_counter()
     jax.block_until_ready(one(dyn, state0, controls[0]))
     first = time.perf_counter() - t0
@@ -119,15 +113,15 @@ def run(mesh: str, number: int, changes: dict, runs: int) -> dict:
     model = jsnap.build(scene)
     build_s = time.perf_counter() - t0
     prepared = jsnap.prepare(model)
-    # Model 1 (~35 steps/s: ~7 s a pass; ~20 s before session 7) is not run again in the scan
-    # (its compile time is measured apart) and is timed once from Python over its first
-    # SLOW_PYTHON_STEPS steps: the 30-minute budget of `jsnap bench`. (In the quick run's
-    # 5-step motion a second call is cheaper than the two-step compile.)
+    # Model 1 (~35 steps/s: ~7 s a pass) is not run again in the scan (its compile time is
+    # measured apart) and makes one Python pass: the 30-minute budget of `jsnap bench`. Its pass
+    # covers the whole motion: its exact mesh query grows with the points near the plug, so the
+    # early steps are cheaper than the rest. (In the quick run's 5-step motion a second call is
+    # cheaper than the two-step compile.)
     slow = number == 1 and not changes
     res, first, scan_times = scan_timing(model, prepared, 0 if slow else runs)
     n = int(res.energy.shape[0])
-    n_py = min(n, SLOW_PYTHON_STEPS) if slow else n
-    py_first, py_times = python_timing(model, prepared, 1 if slow else runs, n_py)
+    py_first, py_times = python_timing(model, prepared, 1 if slow else runs)
     steady, py_steady = float(np.median(scan_times)), float(np.median(py_times))
     F = np.asarray(res.insertion_force, np.float64)
     row = {
@@ -143,9 +137,8 @@ def run(mesh: str, number: int, changes: dict, runs: int) -> dict:
         "steps": n,
         "scan_steps_per_second": n / steady,
         "scan_compile_seconds": first - steady,
-        "python_steps": n_py,
-        "python_steps_per_second": n_py / py_steady,
-        "python_compile_seconds": py_first - py_steady / n_py,
+        "python_steps_per_second": n / py_steady,
+        "python_compile_seconds": py_first - py_steady / n,
         "scan_run_seconds": scan_times,
         "python_run_seconds": py_times,
         "peak_N": float(F.max()),

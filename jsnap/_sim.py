@@ -35,8 +35,9 @@ __all__ = ["Prepared", "Result", "State", "init_state", "prepare", "rollout", "s
 # Points at which the exact triangle-mesh SDF and the neural SDF are evaluated per query (the
 # nearest to the plug's bounding box; see _plug_sdf).
 _MESH_SDF_POINTS = 384
-# The exact mesh SDF's usual query: the points near the plug (see _plug_sdf) number ~30 at the
-# median and ~120 at the 99th percentile of the default scene's steps (1165 queries counted).
+# Block of points of the exact mesh SDF's query (see _mesh_plug_sdf): the points near the plug
+# number ~30 at the median and ~120 at the 99th percentile of the default scene's steps (1165
+# queries counted), so one block serves nearly every step.
 _MESH_SDF_FEW = 128
 # Slack on the margin for the points that must be exact: covers the float32 rounding of the
 # mesh's vertices off the rounded box (~1e-7 of the plug's size), with room to spare.

@@ -347,9 +347,9 @@ def test_mesh_sdf_chunking_jit_vmap(plug):
 def test_scene_mesh_query_exact_where_contact_needs_it(plug, n_contact, dtype):
     """The step's mesh query (``_sim._mesh_plug_sdf``) against the brute force at every point.
 
-    40 points within the margin: the usual query (the ``_MESH_SDF_FEW`` nearest evaluated);
-    300: more than that, the fallback to ``_MESH_SDF_POINTS``. Each case checks which regime its
-    points are in, so that both branches are exercised.
+    40 points within the margin: the usual query (one block of ``_MESH_SDF_FEW``); 300: more
+    than that, further blocks up to ``_MESH_SDF_POINTS``. Each case checks which regime its
+    points are in, so that both are exercised.
     """
     from types import SimpleNamespace
 
