@@ -18,7 +18,7 @@ from 936 to 1344 and 1407).
 
 Timings: the PMI operator is prepared once, outside them. Scan: the first call of
 ``jsnap.rollout`` compiles and runs; the steady time is the median of ``--runs`` further calls,
-and the compile time is the first call minus the steady time (Model 1, ~7 s a pass, is not run
+and the compile time is the first call minus the steady time (Model 1, 3-7 s a pass, is not run
 again: its compile time is a two-step rollout's first call, its run time the first call's
 less that, and it makes one Python pass). Python: a jitted
 ``step(state, control)`` is called once per step of the same motion from a Python loop; its
@@ -113,7 +113,7 @@ def run(mesh: str, number: int, changes: dict, runs: int) -> dict:
     model = jsnap.build(scene)
     build_s = time.perf_counter() - t0
     prepared = jsnap.prepare(model)
-    # Model 1 (~35 steps/s: ~7 s a pass) is not run again in the scan (its compile time is
+    # Model 1 (35-80 steps/s: 3-7 s a pass) is not run again in the scan (its compile time is
     # measured apart) and makes one Python pass: the 30-minute budget of `jsnap bench`. Its pass
     # covers the whole motion: its exact mesh query grows with the points near the plug, so the
     # early steps are cheaper than the rest. (In the quick run's 5-step motion a second call is

@@ -293,9 +293,7 @@ def _while(step, init, done, max_iters):
     def body(c):
         return c[0] + 1, step(c[1])
 
-    c = (jnp.asarray(0, jnp.int32), init)
-    if _UNROLL > 1:
-        c = jax.lax.while_loop(trips, unrolled, c)
+    c = jax.lax.while_loop(trips, unrolled, (jnp.asarray(0, jnp.int32), init))
     return jax.lax.while_loop(cond, body, c)[1]
 
 
