@@ -438,14 +438,22 @@ def _times_line(root: Path, quick: bool) -> str | None:
 # - XLA's older CPU emitters: the default 2.0 mm rollout's backend compilation 2.5 -> 1.2 s, the
 #   same results; they run larger models slower (the 0.8 mm default scene: 88 -> 66 steps/s).
 # - LLVM at -O1 instead of -O2: that rollout's XLA compilation 4.0 -> 2.7 s at the same run time
-#   (the 1.6 mm reduced scene: 300-320 against 300 us per step). -O0 compiles in 1.4 s but runs
+#   (the 1.6 mm reduced scene: 311-323 against 300-301 us per step). -O0 compiles in 1.4 s but runs
 #   2.6x slower, which costs the quick scripts that run for a while (calculix_compare,
 #   design_guide, stability) more than it saves. LLVM's optimisations reorder float32
 #   arithmetic, so the quick curves differ from the full runs' by round-off (a contact event can
 #   move by a step).
-# Whole quick run, 2 workers, side by side on one day: 188 s with the emitters flag only, 169 s
-# with both. The full runs, whose timings are the headline numbers, keep XLA's defaults.
+# Whole quick run, 2 workers: 186 and 188 s with the emitters flag only (session 8), 169 s twice
+# with both (session 9). The full runs, whose timings are the headline numbers, keep XLA's
+# defaults.
 QUICK_XLA_FLAGS = "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=1"
+
+
+def quick_xla_flags(user: str) -> str:
+    """``XLA_FLAGS`` for the quick runs: the user's flags, then each of ``QUICK_XLA_FLAGS``
+    that the user has not set (the user's own setting of a flag wins)."""
+    extra = [f for f in QUICK_XLA_FLAGS.split() if f.split("=")[0] not in user]
+    return " ".join([user.strip(), *extra]).strip()
 
 
 def _quick_task(name: str, argv: list[str], cwd: str) -> tuple[int, float]:
@@ -479,9 +487,7 @@ def _run_quick(root: Path, todo: list[Bench], jobs: int) -> tuple[dict, str]:
     from multiprocessing import get_context
 
     old = os.environ.get("XLA_FLAGS", "")
-    # The user's own setting of a flag wins.
-    extra = [f for f in QUICK_XLA_FLAGS.split() if f.split("=")[0] not in old]
-    flags = " ".join([old, *extra]).strip()
+    flags = quick_xla_flags(old)
     os.environ["XLA_FLAGS"] = flags
     times = {}
     try:

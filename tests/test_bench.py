@@ -1,6 +1,7 @@
 """`jsnap bench`: the runner, the README table it regenerates, and a quick benchmark end to end."""
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -56,6 +57,19 @@ def test_quick_benchmarks_run(tmp_path, monkeypatch):
     assert all(t["ok"] for t in times["scripts"].values())
     readme = (bench / "README.md").read_text()
     assert "`jsnap bench --quick`:" in readme
+    # The flags the scripts were compiled with are recorded.
+    assert times["complete_run"]["xla_flags"] == _bench.quick_xla_flags(os.environ.get("XLA_FLAGS", ""))
+
+
+def test_quick_xla_flags_keep_the_users():
+    """The quick runs add their XLA flags to the user's, and a flag the user sets wins."""
+    flags = _bench.QUICK_XLA_FLAGS.split()
+    assert _bench.quick_xla_flags("").split() == flags
+    assert _bench.quick_xla_flags(" --xla_foo=1 ").split() == ["--xla_foo=1", *flags]
+    mine = "--xla_backend_optimization_level=3"
+    out = _bench.quick_xla_flags(mine).split()
+    assert mine in out and "--xla_backend_optimization_level=1" not in out
+    assert "--xla_cpu_use_fusion_emitters=false" in out
 
 
 def test_full_run_untimed_side_by_side_then_timed_alone(tmp_path, monkeypatch):
