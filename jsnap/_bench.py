@@ -437,10 +437,11 @@ def _times_line(root: Path, quick: bool) -> str | None:
 # they compile with flags that trade a little run time for much less compile time:
 # - XLA's older CPU emitters: the default 2.0 mm rollout's backend compilation 2.5 -> 1.2 s, the
 #   same results; they run larger models slower (the 0.8 mm default scene: 88 -> 66 steps/s).
-# - LLVM at -O1 instead of -O2: that rollout's XLA compilation 4.0 -> 2.7 s at the same run time
-#   (the 1.6 mm reduced scene: 311-323 against 300-301 us per step). -O0 compiles in 1.4 s but runs
-#   2.6x slower, which costs the quick scripts that run for a while (calculix_compare,
-#   design_guide, stability) more than it saves. LLVM's optimisations reorder float32
+# - LLVM at -O1 instead of -O2: that rollout's whole XLA compilation (JAX_LOG_COMPILES; with the
+#   older emitters already) 4.0 -> 2.7 s at the same run time (the 1.6 mm reduced scene: 311-323
+#   against 300-301 us per step). -O0 compiles in 1.4 s but runs 2.6x slower, which costs the
+#   quick scripts that run for a while (calculix_compare, design_guide, stability) more than it
+#   saves. LLVM's optimisations reorder float32
 #   arithmetic, so the quick curves differ from the full runs' by round-off (a contact event can
 #   move by a step).
 # Whole quick run, 2 workers: 186 and 188 s with the emitters flag only (session 8), 169 s twice
