@@ -43,6 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 import trimesh
 
+from ._cache import cache_dir, load_or_make
 from ._sdf import MeshSDF, mesh_sdf_and_normal
 from ._util import safe_norm
 
@@ -356,12 +357,6 @@ def cache_key(mesh: trimesh.Trimesh, config: NeuralSDFConfig) -> str:
         sort_keys=True,
     )
     return hashlib.sha256(blob.encode()).hexdigest()
-
-
-def cache_dir() -> Path:
-    """Where trained weights are cached: ``$JSNAP_CACHE`` or ``~/.cache/jsnap``."""
-    root = os.environ.get("JSNAP_CACHE")
-    return Path(root) if root else Path.home() / ".cache" / "jsnap"
 
 
 def cache_path(key: str) -> Path:
@@ -733,6 +728,9 @@ def load_or_train(
     that is corrupt or was written for something else is never used: it is reported with a
     warning and replaced by a freshly trained one.
 
+    Processes that ask for the same weights at once train them once: the others wait and load
+    them (:func:`jsnap._cache.load_or_make`).
+
     Args:
         mesh: ``trimesh.Trimesh``, watertight and consistently wound, in mm.
         config: settings (default :class:`NeuralSDFConfig()`).
@@ -751,31 +749,30 @@ def load_or_train(
     _check_mesh(mesh)
     key = cache_key(mesh, config)
     path = cache_path(key)
-    if path.is_file() and not retrain:
+
+    def cached():
         try:
             net, meta = load(path, key=key)
-            extra = meta.get("extra", {})
-            return net, dict(
-                path=path,
-                cached=True,
-                key=key,
-                mesh_hash=meta["mesh_hash"],
-                config=meta["config"],
-                report=extra.get("report"),
-                seconds=extra.get("seconds"),
-            )
         except NeuralSDFFileError as err:
-            warnings.warn(f"{err}; retraining", stacklevel=2)
-    net, info = train(mesh, config, progress=progress, report_points=report_points)
-    save(
-        net,
-        path,
-        key=key,
-        mesh_hash=info["mesh_hash"],
-        config=config,
-        extra=dict(
-            report=info["report"], seconds=info["seconds"], final_loss=float(np.mean(info["loss"][-100:]))
-        ),
-    )
-    info = {k: v for k, v in info.items() if k != "loss"}
-    return net, dict(info, path=path, cached=False)
+            warnings.warn(f"{err}; retraining", stacklevel=4)
+            return None
+        extra = meta.get("extra", {})
+        return net, dict(
+            path=path,
+            cached=True,
+            key=key,
+            mesh_hash=meta["mesh_hash"],
+            config=meta["config"],
+            report=extra.get("report"),
+            seconds=extra.get("seconds"),
+        )
+
+    def trained():
+        net, info = train(mesh, config, progress=progress, report_points=report_points)
+        loss = float(np.mean(info["loss"][-100:]))
+        extra = dict(report=info["report"], seconds=info["seconds"], final_loss=loss)
+        save(net, path, key=key, mesh_hash=info["mesh_hash"], config=config, extra=extra)
+        info = {k: v for k, v in info.items() if k != "loss"}
+        return net, dict(info, path=path, cached=False)
+
+    return load_or_make(path, cached, trained, what="the neural SDF", fresh=retrain)

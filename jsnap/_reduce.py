@@ -74,9 +74,10 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import skfem
 
+from jsnap._cache import cache_dir, load_or_make
 from jsnap._fem import _ELEMENTS, Assembly, _k_lam, _k_mu, _m1, lame
 from jsnap._integrate import Material, spd_inverse
-from jsnap._neural_sdf import _checksum, cache_dir
+from jsnap._neural_sdf import _checksum
 
 __all__ = [
     "FORMAT_VERSION",
@@ -1073,6 +1074,9 @@ def load_or_build(
     A cached file that is corrupt or was built for something else is never used: it is
     reported with a warning and rebuilt.
 
+    Processes that build the same model at once build it once: the others wait and load it
+    (:func:`jsnap._cache.load_or_make`).
+
     Returns:
         ``(arrays, meta)``; meta holds ``orders``, ``key``, ``path``, ``cached``, ``seconds``
         (build time), the per-segment reduction details and the Hankel singular values.
@@ -1080,13 +1084,27 @@ def load_or_build(
     settings = _settings(scene)
     key = cache_key(asm, seed_faces, sample, stencil, normals, settings)
     path = cache_path(key)
-    if path.is_file() and not rebuild:
+
+    def cached():
         try:
             arrays, meta = load(path, key=key)
-            arrays.setdefault("recon", None)
-            return arrays, dict(meta, path=str(path), cached=True)
         except ReducedModelFileError as err:
-            warnings.warn(f"{err}; rebuilding", stacklevel=2)
+            warnings.warn(f"{err}; rebuilding", stacklevel=4)
+            return None
+        arrays.setdefault("recon", None)
+        return arrays, dict(meta, path=str(path), cached=True)
+
+    return load_or_make(
+        path,
+        cached,
+        lambda: _build(asm, seed_faces, sample, stencil, normals, settings, key, path, progress),
+        what="the reduced model",
+        fresh=rebuild,
+    )
+
+
+def _build(asm: Assembly, seed_faces, sample, stencil, normals, settings, key, path, progress):
+    """Segment, reduce and cache (:func:`load_or_build`'s build)."""
     say = print if progress else (lambda *a, **k: None)
     t0 = time.perf_counter()
     seg = segment(asm, seed_faces, settings["segment_margin"], settings["segments"])
