@@ -270,31 +270,27 @@ def _while(step, init, done, max_iters):
     derivatives are taken implicitly (``_implicit``).
 
     Each trip of the loop makes ``_UNROLL`` steps, the later ones frozen (a select) once
-    ``done``: at these sizes a step costs its ~30 kernel launches, and the loop's own per-trip
-    work is a good part of that. A last loop of single steps finishes up to ``max_iters``.
+    ``done`` or past ``max_iters``: at these sizes a step costs its ~30 kernel launches, and the
+    loop's own per-trip work is a good part of that. The loop is the solver's only copy of
+    ``step`` (a second loop of single steps for the last ``max_iters % _UNROLL`` iterations
+    would be a third copy: measured on a 16-contact APGD solve, 0.97 s to compile against 0.62
+    s with one copy and ~0.75 s with these two).
     """
 
-    def freeze(s):
-        d = done(s)
-        return jax.tree_util.tree_map(lambda a, b: jnp.where(d, a, b), s, step(s))
+    def freeze(k, s):
+        stop = done(s) | (k >= max_iters)
+        return jax.tree_util.tree_map(lambda a, b: jnp.where(stop, a, b), s, step(s))
 
     def trips(c):
-        return (c[0] + _UNROLL <= max_iters) & ~done(c[1])
+        return (c[0] < max_iters) & ~done(c[1])
 
     def unrolled(c):
         s = step(c[1])
-        for _ in range(_UNROLL - 1):
-            s = freeze(s)
+        for j in range(1, _UNROLL):
+            s = freeze(c[0] + j, s)
         return c[0] + _UNROLL, s
 
-    def cond(c):
-        return (c[0] < max_iters) & ~done(c[1])
-
-    def body(c):
-        return c[0] + 1, step(c[1])
-
-    c = jax.lax.while_loop(trips, unrolled, (jnp.asarray(0, jnp.int32), init))
-    return jax.lax.while_loop(cond, body, c)[1]
+    return jax.lax.while_loop(trips, unrolled, (jnp.asarray(0, jnp.int32), init))[1]
 
 
 def _mask_gamma(gamma, m3):

@@ -438,6 +438,24 @@ def test_vmap_equals_loop_and_no_recompile():
 
 
 @pytest.mark.parametrize("solver", ["apgd", "pgs"])
+def test_while_loop_takes_the_frozen_scans_iterates(solver):
+    """The forward-only solve (``differentiable=False``: a while loop of two steps per trip)
+    stops where the differentiable frozen scan freezes, with the same iterate: converged, and
+    cut by an odd or even cap (the loop's last trip then has a step past the cap, frozen)."""
+    f = {"apgd": solve_apgd, "pgs": solve_pgs}[solver]
+    problems = [random_problem(s, 8, kind) for s, kind in ((11, "under"), (12, "square"), (13, "over"))]
+    for cap in (1, 6, 7, 400):
+        loop = jax.jit(functools.partial(f, max_iters=cap, tol=TOL, differentiable=False))
+        scan = jax.jit(functools.partial(f, max_iters=cap, tol=TOL, differentiable=True))
+        for p in problems:
+            a, b = loop(*p), scan(*p)
+            assert int(a.iterations) == int(b.iterations) <= cap
+            assert bool(a.converged) == bool(b.converged)
+            np.testing.assert_allclose(np.asarray(a.gamma), np.asarray(b.gamma), rtol=1e-12, atol=1e-12)
+    assert int(a.iterations) < 400 and bool(a.converged)  # the last problem converged within the cap
+
+
+@pytest.mark.parametrize("solver", ["apgd", "pgs"])
 def test_float32_in_float32_out(solver):
     W, q, mu, mask = _separated_problem()
     f = {"apgd": solve_apgd, "pgs": solve_pgs}[solver]
