@@ -457,9 +457,16 @@ def quick_xla_flags(user: str) -> str:
     return " ".join([user.strip(), *extra]).strip()
 
 
+def _say(line: str) -> None:
+    """A progress line on stderr in one write (``print`` writes the newline apart, so the lines
+    of the quick run's worker processes, which share stderr, ran into each other)."""
+    sys.stderr.write(line + "\n")
+    sys.stderr.flush()
+
+
 def _quick_task(name: str, argv: list[str], cwd: str) -> tuple[int, float]:
     """One quick script in this worker process (its exit status and wall time)."""
-    print(f"jsnap bench: {name} ...", file=sys.stderr, flush=True)
+    _say(f"jsnap bench: {name} ...")
     t0 = time.perf_counter()
     rc = _run_in_process(argv, Path(cwd))
     return rc, time.perf_counter() - t0
@@ -476,7 +483,7 @@ def _longest_first(root: Path, todo: list[Bench], quick: bool) -> list[Bench]:
 def _done(name: str, rc: int, dt: float) -> dict:
     """Report a finished script; its entry in ``bench_times*.json``."""
     status = "ok" if rc == 0 else f"FAILED (exit {rc})"
-    print(f"jsnap bench: {name} {status} in {dt:.0f} s", file=sys.stderr, flush=True)
+    _say(f"jsnap bench: {name} {status} in {dt:.0f} s")
     return {"seconds": round(dt, 1), "ok": rc == 0}
 
 
@@ -502,7 +509,7 @@ def _run_quick(root: Path, todo: list[Bench], jobs: int) -> tuple[dict, str]:
                 try:
                     rc, dt = fut.result()
                 except Exception as err:  # the worker died (a crash in compiled code, out of memory)
-                    print(f"jsnap bench: {name}: worker failed ({type(err).__name__}: {err})", file=sys.stderr)
+                    _say(f"jsnap bench: {name}: worker failed ({type(err).__name__}: {err})")
                     rc, dt = 1, float("nan")
                 times[name] = _done(name, rc, dt)
     finally:
@@ -514,7 +521,7 @@ def _run_quick(root: Path, todo: list[Bench], jobs: int) -> tuple[dict, str]:
 
 def _run_script(root: Path, b: Bench) -> dict:
     """One script of a full run in its own process (its timings start from a clean process)."""
-    print(f"jsnap bench: {b.name} ...", file=sys.stderr, flush=True)
+    _say(f"jsnap bench: {b.name} ...")
     t0 = time.perf_counter()
     rc = subprocess.call([sys.executable, str(root / b.file), *b.args], cwd=root.parent)
     return _done(b.name, rc, time.perf_counter() - t0)

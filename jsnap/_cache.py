@@ -52,7 +52,8 @@ def _locked(path: Path, what: str):
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            print(f"jsnap: waiting for another process building {what} ({path})", file=sys.stderr, flush=True)
+            sys.stderr.write(f"jsnap: waiting for another process building {what} ({path})\n")
+            sys.stderr.flush()
             fcntl.flock(fh, fcntl.LOCK_EX)
         try:
             yield
