@@ -239,28 +239,27 @@ def _frozen_scan(step, init, done, trace, max_iters):
     A bounded ``lax.scan`` (reverse-differentiable, unlike ``while_loop``). The freeze is a
     ``lax.cond``, so a converged single solve skips the work; iterations are grouped in blocks
     of ``_BLOCK`` so that, once converged, whole blocks are skipped at the price of one cond.
-    Under ``vmap`` conds become selects and every lane runs all ``max_iters`` steps.
+    The last block's steps past ``max_iters`` are frozen too, so that the program holds one
+    copy of ``step`` (a scan of the remaining single steps would be a second). Under ``vmap``
+    conds become selects and every lane runs all the blocks' steps.
 
     Returns the final carry and ``trace(carry)`` after every iteration, (max_iters,).
     """
 
-    def one(s, _):
-        out = jax.lax.cond(done(s), lambda s: s, step, s)
+    def one(s, k):
+        out = jax.lax.cond(done(s) | (k >= max_iters), lambda s: s, step, s)
         return out, trace(out)
 
-    def block(s, _):
+    def block(s, b):
         def skip(s):
             return s, jnp.broadcast_to(trace(s), (_BLOCK,))
 
-        return jax.lax.cond(done(s), skip, lambda s: jax.lax.scan(one, s, None, _BLOCK), s)
+        ks = b * _BLOCK + jnp.arange(_BLOCK)
+        return jax.lax.cond(done(s), skip, lambda s: jax.lax.scan(one, s, ks), s)
 
-    n_blocks, rest = divmod(max_iters, _BLOCK)
-    s, tr = jax.lax.scan(block, init, None, length=n_blocks)
-    tr = tr.reshape(-1)
-    if rest:
-        s, tr_rest = jax.lax.scan(one, s, None, length=rest)
-        tr = jnp.concatenate([tr, tr_rest])
-    return s, tr
+    n_blocks = -(-max_iters // _BLOCK)
+    s, tr = jax.lax.scan(block, init, jnp.arange(n_blocks))
+    return s, tr.reshape(-1)[:max_iters]
 
 
 def _while(step, init, done, max_iters):
