@@ -441,9 +441,8 @@ def _times_line(root: Path, quick: bool) -> str | None:
 #   older emitters already) 4.0 -> 2.7 s at the same run time (the 1.6 mm reduced scene: 311-323
 #   against 300-301 us per step). -O0 compiles in 1.4 s but runs 2.6x slower, which costs the
 #   quick scripts that run for a while (calculix_compare, design_guide, stability) more than it
-#   saves. LLVM's optimisations reorder float32
-#   arithmetic, so the quick curves differ from the full runs' by round-off (a contact event can
-#   move by a step).
+#   saves. LLVM's optimisations reorder float32 arithmetic, so the quick curves differ from the
+#   full runs' by round-off (a contact event can move by a step).
 # Whole quick run, 2 workers: 186 and 188 s with the emitters flag only (session 8), 169 s twice
 # with both (session 9). The full runs, whose timings are the headline numbers, keep XLA's
 # defaults.
