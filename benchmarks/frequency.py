@@ -48,7 +48,7 @@ import numpy as np
 from _common import code_version, jitted_step, scan_timing
 
 import jsnap
-from jsnap._neural_sdf import NeuralSDFConfig, cache_key, cache_path
+from jsnap._neural_sdf import NeuralSDFConfig, cache_key, cache_path, shipped_path
 from jsnap._sdf import rounded_box_mesh
 
 OUT = Path(__file__).parent / "results"
@@ -71,12 +71,13 @@ def machine(load) -> str:
 
 
 def neural_cached(scene) -> bool:
-    """Whether the default neural SDF of the scene's plug is in the cache (no training needed)."""
+    """Whether the default neural SDF of the scene's plug is cached or shipped (no training needed)."""
     from jsnap._model import _plug_geometry
     from jsnap._scene import connector_geometry
 
     half, radius, _ = _plug_geometry(scene, connector_geometry(scene))
-    return cache_path(cache_key(rounded_box_mesh(half, radius), NeuralSDFConfig())).is_file()
+    key = cache_key(rounded_box_mesh(half, radius), NeuralSDFConfig())
+    return cache_path(key).is_file() or shipped_path(key).is_file()
 
 
 def python_timing(model, prepared, runs: int):

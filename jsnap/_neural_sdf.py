@@ -62,6 +62,7 @@ __all__ = [
     "neural_sdf",
     "neural_sdf_and_normal",
     "save",
+    "shipped_path",
     "summarise",
     "train",
 ]
@@ -71,6 +72,11 @@ FORMAT_NAME = "jsnap.neural_sdf"
 FORMAT_VERSION = 1
 
 ACTIVATIONS = ("softplus", "silu", "gelu", "tanh")
+
+# Weights shipped with the package (read-only), used when the cache has none for the key: the
+# default plug's, so that a first run does not spend the training (~30 s on 2 cores) and every
+# machine uses the weights that the committed benchmark results were made with.
+SHIPPED = Path(__file__).parent / "data" / "neural_sdf"
 
 
 class NeuralSDFFileError(ValueError):
@@ -341,10 +347,30 @@ def load_mesh(path) -> trimesh.Trimesh:
     return mesh
 
 
+# Vertex coordinates are rounded to this many decimals (mm) before hashing.
+_HASH_DECIMALS = 9
+
+
 def mesh_hash(mesh: trimesh.Trimesh) -> str:
-    """SHA-256 of the mesh's vertices (float64) and faces (int64)."""
+    """SHA-256 of the mesh as a set of oriented triangles.
+
+    The same surface gives the same hash whatever the order of its vertices and faces and
+    whichever corner each face starts at (orientation kept): what a mesher or a convex hull
+    may change between library versions, while the distances (the training labels) stay the
+    same. Coordinates are rounded to 1e-9 mm first, so that last-bit differences in how they
+    were computed do not count.
+    """
+    v = np.round(np.asarray(mesh.vertices, np.float64), _HASH_DECIMALS) + 0.0  # -0.0 -> 0.0
+    f = np.asarray(mesh.faces, np.int64)
+    order = np.lexsort(v.T[::-1])  # vertices sorted by x, then y, then z
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    f = rank[f]
+    start = np.argmin(f, axis=1)[:, None]  # each face from its lowest vertex, same orientation
+    f = np.take_along_axis(f, (start + np.arange(3)) % 3, axis=1)
+    f = f[np.lexsort(f.T[::-1])]
     h = hashlib.sha256()
-    for a in (np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)):
+    for a in (v[order], f):
         h.update(str(a.shape).encode())
         h.update(np.ascontiguousarray(a).tobytes())
     return h.hexdigest()
@@ -361,6 +387,11 @@ def cache_key(mesh: trimesh.Trimesh, config: NeuralSDFConfig) -> str:
 
 def cache_path(key: str) -> Path:
     return cache_dir() / "neural_sdf" / f"{key[:32]}.npz"
+
+
+def shipped_path(key: str) -> Path:
+    """Where the package ships weights for ``key`` (the default plug's; the file may not exist)."""
+    return SHIPPED / f"{key[:32]}.npz"
 
 
 # --------------------------------------------------------------------------------------------
@@ -726,7 +757,9 @@ def load_or_train(
     The cache file is ``cache_dir()/neural_sdf/<k>.npz``, ``k`` the first 32 hex digits of
     ``cache_key(mesh, config)`` (the full key is stored in the file and checked). A cached file
     that is corrupt or was written for something else is never used: it is reported with a
-    warning and replaced by a freshly trained one.
+    warning and replaced by a freshly trained one. Where the cache has no file, the weights
+    shipped with the package for the key (:func:`shipped_path`: the default plug's, default
+    settings) are used, read-only, before anything is trained.
 
     Processes that ask for the same weights at once train them once: the others wait and load
     them (:func:`jsnap._cache.load_or_make`).
@@ -739,8 +772,9 @@ def load_or_train(
         report_points: points of the accuracy report made after training (stored in the file).
 
     Returns:
-        ``(net, info)``: info has ``path``, ``cached`` (bool), ``key``, ``mesh_hash``, ``config``,
-        ``report`` (accuracy at training time) and ``seconds`` (training time).
+        ``(net, info)``: info has ``path``, ``cached`` (bool: read, not trained), ``shipped``
+        (bool: read from the package's weights), ``key``, ``mesh_hash``, ``config``, ``report``
+        (accuracy at training time) and ``seconds`` (training time).
 
     Raises:
         ValueError: the mesh is not watertight or its winding is inconsistent.
@@ -750,16 +784,17 @@ def load_or_train(
     key = cache_key(mesh, config)
     path = cache_path(key)
 
-    def cached():
+    def cached(file=path):
         try:
-            net, meta = load(path, key=key)
+            net, meta = load(file, key=key)
         except NeuralSDFFileError as err:
-            warnings.warn(f"{err}; retraining", stacklevel=4)
+            warnings.warn(f"{err}; {'training' if file != path else 'retraining'}", stacklevel=4)
             return None
         extra = meta.get("extra", {})
         return net, dict(
-            path=path,
+            path=file,
             cached=True,
+            shipped=file != path,
             key=key,
             mesh_hash=meta["mesh_hash"],
             config=meta["config"],
@@ -773,6 +808,9 @@ def load_or_train(
         extra = dict(report=info["report"], seconds=info["seconds"], final_loss=loss)
         save(net, path, key=key, mesh_hash=info["mesh_hash"], config=config, extra=extra)
         info = {k: v for k, v in info.items() if k != "loss"}
-        return net, dict(info, path=path, cached=False)
+        return net, dict(info, path=path, cached=False, shipped=False)
 
+    shipped = shipped_path(key)
+    if not retrain and not path.is_file() and shipped.is_file() and (found := cached(shipped)) is not None:
+        return found
     return load_or_make(path, cached, trained, what="the neural SDF", fresh=retrain)

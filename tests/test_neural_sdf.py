@@ -223,6 +223,90 @@ def test_cache_trains_once_then_loads_and_replaces_a_corrupt_entry(mesh, tmp_pat
         assert nsdf.load_or_train(mesh, QUICK, report_points=500)[1]["cached"]
 
 
+def test_mesh_hash_is_the_surface_not_its_listing(mesh):
+    """The cache key's mesh hash: the same for the same oriented triangles listed in any order
+    (vertices, faces, a face's starting corner) or off in the last bit; another for a moved
+    vertex or flipped faces."""
+    h = nsdf.mesh_hash(mesh)
+    rng = np.random.default_rng(5)
+    perm = rng.permutation(len(mesh.vertices))
+    inverse = np.argsort(perm)
+    faces = inverse[np.asarray(mesh.faces)][rng.permutation(len(mesh.faces))]
+    faces = np.stack([np.roll(f, k) for f, k in zip(faces, rng.integers(0, 3, len(faces)), strict=True)])
+    shuffled = trimesh.Trimesh(np.asarray(mesh.vertices)[perm], faces, process=False)
+    assert nsdf.mesh_hash(shuffled) == h
+    ulp = trimesh.Trimesh(np.nextafter(mesh.vertices, np.inf), mesh.faces, process=False)
+    assert nsdf.mesh_hash(ulp) == h
+    moved = np.array(mesh.vertices)
+    moved[7] += 1e-6
+    assert nsdf.mesh_hash(trimesh.Trimesh(moved, mesh.faces, process=False)) != h
+    flipped = trimesh.Trimesh(mesh.vertices, np.asarray(mesh.faces)[:, ::-1], process=False)
+    assert nsdf.mesh_hash(flipped) != h
+
+
+def test_shipped_weights_are_read_before_training(mesh, trained, tmp_path, monkeypatch):
+    """Weights shipped for a key are used, read-only, when the cache has none; a cached file
+    comes first; ``retrain`` and a corrupt shipped file train."""
+    net, info = trained
+    key = nsdf.cache_key(mesh, TINY)
+    monkeypatch.setattr(nsdf, "SHIPPED", tmp_path / "shipped")
+    shipped = _save(net, info, nsdf.shipped_path(key))
+    monkeypatch.setenv("JSNAP_CACHE", str(tmp_path / "cache"))
+
+    def no_training(*a, **k):
+        raise AssertionError("trained")
+
+    monkeypatch.setattr(nsdf, "train", no_training)
+    got, got_info = nsdf.load_or_train(mesh, TINY)
+    assert got_info["cached"] and got_info["shipped"] and got_info["path"] == shipped
+    x = np.random.default_rng(6).normal(size=(16, 3))
+    np.testing.assert_array_equal(nsdf.neural_sdf(got, x), nsdf.neural_sdf(net, x))
+    assert not (tmp_path / "cache" / "neural_sdf").exists()  # nothing written
+    with pytest.raises(AssertionError, match="trained"):
+        nsdf.load_or_train(mesh, TINY, retrain=True)
+    # A file in the cache comes first.
+    mine = _save(net, info, nsdf.cache_path(key))
+    assert nsdf.load_or_train(mesh, TINY)[1]["path"] == mine
+    mine.unlink()
+    # A corrupt shipped file is reported and not used.
+    raw = bytearray(shipped.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    shipped.write_bytes(bytes(raw))
+    with pytest.warns(UserWarning, match="checksum|corrupt"), pytest.raises(AssertionError, match="trained"):
+        nsdf.load_or_train(mesh, TINY)
+
+
+def test_shipped_weights_are_the_default_plugs(tmp_path, monkeypatch):
+    """The package's weights describe the current default plug: the default settings, and
+    within the training-time accuracy of the exact SDF of the plug that the default scene
+    builds now. Where that plug's mesh has the shipped key they are used without training;
+    where a mesh library triangulates it differently (another key), the plug is trained."""
+    from jsnap._model import _plug_geometry
+    from jsnap._scene import connector_geometry
+
+    files = sorted(nsdf.SHIPPED.glob("*.npz"))
+    assert len(files) == 1
+    net, meta = nsdf.load(files[0])  # verifies the checksum
+    assert meta["config"] == nsdf.NeuralSDFConfig().to_dict() and files[0].stem == meta["key"][:32]
+    scene = jsnap.load_scene()
+    half, radius, _ = _plug_geometry(scene, connector_geometry(scene))
+    plug = rounded_box_mesh(half, radius)
+    report = nsdf.accuracy_report(net, plug, points=4000)
+    assert report["mae_mm"] < 2e-3 and report["normal_median_deg"] < 2.0, report
+
+    monkeypatch.setenv("JSNAP_CACHE", str(tmp_path / "cache"))
+
+    def no_training(*a, **k):
+        raise AssertionError("trained")
+
+    monkeypatch.setattr(nsdf, "train", no_training)
+    if nsdf.cache_key(plug, nsdf.NeuralSDFConfig()) == meta["key"]:
+        assert nsdf.load_or_train(plug)[1]["shipped"]
+    else:
+        with pytest.raises(AssertionError, match="trained"):
+            nsdf.load_or_train(plug)
+
+
 # ----------------------------------------------------------------------------------------------
 # Bad input
 # ----------------------------------------------------------------------------------------------
