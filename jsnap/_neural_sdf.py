@@ -788,7 +788,9 @@ def load_or_train(
         try:
             net, meta = load(file, key=key)
         except NeuralSDFFileError as err:
-            warnings.warn(f"{err}; {'training' if file != path else 'retraining'}", stacklevel=4)
+            # The caller of load_or_train: through load_or_make for the cache, directly here.
+            shipped = file != path
+            warnings.warn(f"{err}; {'training' if shipped else 'retraining'}", stacklevel=3 if shipped else 4)
             return None
         extra = meta.get("extra", {})
         return net, dict(
