@@ -13,13 +13,16 @@ while another process waits on it would let a third build beside it.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import TypeVar
 
-__all__ = ["cache_dir", "load_or_make"]
+import numpy as np
+
+__all__ = ["cache_dir", "checksum", "load_or_make"]
 
 T = TypeVar("T")
 
@@ -28,6 +31,17 @@ def cache_dir() -> Path:
     """Where built artefacts are cached: ``$JSNAP_CACHE`` or ``~/.cache/jsnap``."""
     root = os.environ.get("JSNAP_CACHE")
     return Path(root) if root else Path.home() / ".cache" / "jsnap"
+
+
+def checksum(meta_json: str, arrays: dict) -> str:
+    """SHA-256 of a cache file's metadata (JSON) and of every array (name, dtype, shape, bytes),
+    stored in the file and checked when it is read."""
+    h = hashlib.sha256(meta_json.encode())
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        h.update(f"{name}|{a.dtype.str}|{a.shape}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
 
 
 def _stamp(path: Path):

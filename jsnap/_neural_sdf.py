@@ -44,6 +44,7 @@ import numpy as np
 import trimesh
 
 from ._cache import cache_dir, load_or_make
+from ._cache import checksum as _checksum
 from ._sdf import MeshSDF, mesh_sdf_and_normal
 from ._util import safe_norm
 
@@ -622,15 +623,6 @@ def _named_leaves(params) -> dict:
     return {"param/" + "/".join(str(k.key) for k in path): leaf for path, leaf in leaves}
 
 
-def _checksum(meta_json: str, arrays: dict) -> str:
-    h = hashlib.sha256(meta_json.encode())
-    for name in sorted(arrays):
-        a = np.ascontiguousarray(arrays[name])
-        h.update(f"{name}|{a.dtype.str}|{a.shape}".encode())
-        h.update(a.tobytes())
-    return h.hexdigest()
-
-
 def save(net: NeuralSDF, path, *, key: str, mesh_hash: str, config: NeuralSDFConfig, extra=None) -> Path:
     """Write the weights to ``path`` (``.npz``), atomically.
 
@@ -785,18 +777,18 @@ def load_or_train(
     path = cache_path(key)
 
     def cached(file=path):
+        shipped = file != path
         try:
             net, meta = load(file, key=key)
         except NeuralSDFFileError as err:
-            # The caller of load_or_train: through load_or_make for the cache, directly here.
-            shipped = file != path
+            # Points at load_or_train's caller: directly from here, through load_or_make otherwise.
             warnings.warn(f"{err}; {'training' if shipped else 'retraining'}", stacklevel=3 if shipped else 4)
             return None
         extra = meta.get("extra", {})
         return net, dict(
             path=file,
             cached=True,
-            shipped=file != path,
+            shipped=shipped,
             key=key,
             mesh_hash=meta["mesh_hash"],
             config=meta["config"],
@@ -812,7 +804,7 @@ def load_or_train(
         info = {k: v for k, v in info.items() if k != "loss"}
         return net, dict(info, path=path, cached=False, shipped=False)
 
-    shipped = shipped_path(key)
-    if not retrain and not path.is_file() and shipped.is_file() and (found := cached(shipped)) is not None:
+    package = shipped_path(key)
+    if not retrain and not path.is_file() and package.is_file() and (found := cached(package)) is not None:
         return found
     return load_or_make(path, cached, trained, what="the neural SDF", fresh=retrain)

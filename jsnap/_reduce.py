@@ -75,9 +75,9 @@ import scipy.sparse.linalg as spla
 import skfem
 
 from jsnap._cache import cache_dir, load_or_make
+from jsnap._cache import checksum as _checksum
 from jsnap._fem import _ELEMENTS, Assembly, _k_lam, _k_mu, _m1, lame
 from jsnap._integrate import Material, spd_inverse
-from jsnap._neural_sdf import _checksum
 
 __all__ = [
     "FORMAT_VERSION",
