@@ -17,6 +17,7 @@ a checkout (or set ``JSNAP_BENCHMARKS`` to the folder).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import subprocess
@@ -456,6 +457,25 @@ def quick_xla_flags(user: str) -> str:
     return " ".join([user.strip(), *extra]).strip()
 
 
+@contextlib.contextmanager
+def _script_env(**extra: str):
+    """The environment the benchmark scripts run in: ``extra``, and JAX's persistent
+    compilation cache switched off (``JAX_ENABLE_COMPILATION_CACHE=false``), whatever the
+    user's environment says: the scripts report compile times, which a program loaded from a
+    cache would falsify (and a run's time budget is a run that compiles). Restored afterwards."""
+    extra = {"JAX_ENABLE_COMPILATION_CACHE": "false", **extra}
+    old = {k: os.environ.get(k) for k in extra}
+    os.environ.update(extra)
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
 def _say(line: str) -> None:
     """A progress line on stderr in one write (``print`` writes the newline apart, so the lines
     of the quick run's worker processes, which share stderr, ran into each other)."""
@@ -493,11 +513,9 @@ def _run_quick(root: Path, todo: list[Bench], jobs: int) -> tuple[dict, str]:
     from concurrent.futures import ProcessPoolExecutor, as_completed
     from multiprocessing import get_context
 
-    old = os.environ.get("XLA_FLAGS", "")
-    flags = quick_xla_flags(old)
-    os.environ["XLA_FLAGS"] = flags
+    flags = quick_xla_flags(os.environ.get("XLA_FLAGS", ""))
     times = {}
-    try:
+    with _script_env(XLA_FLAGS=flags):
         with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
             futures = {
                 pool.submit(_quick_task, b.name, [str(root / b.file), "--quick"], str(root.parent)): b
@@ -511,10 +529,6 @@ def _run_quick(root: Path, todo: list[Bench], jobs: int) -> tuple[dict, str]:
                     _say(f"jsnap bench: {name}: worker failed ({type(err).__name__}: {err})")
                     rc, dt = 1, float("nan")
                 times[name] = _done(name, rc, dt)
-    finally:
-        os.environ["XLA_FLAGS"] = old
-        if not old:
-            del os.environ["XLA_FLAGS"]
     return {b.name: times[b.name] for b in todo if b.name in times}, flags
 
 
@@ -578,7 +592,8 @@ def main(names: list[str], quick: bool, list_only: bool, jobs: int | None = None
         times, flags = _run_quick(root, todo, jobs) if todo else ({}, "")
         how = {"workers": jobs, "xla_flags": flags}
     else:
-        times, how = _run_full(root, todo, jobs)
+        with _script_env():
+            times, how = _run_full(root, todo, jobs)
     failed = [n for n, t in times.items() if not t["ok"]]
     if times:
         _record_times(root, times, quick, complete=not names, wall=time.perf_counter() - t_all, **how)

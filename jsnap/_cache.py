@@ -1,4 +1,5 @@
-"""The on-disk cache of built artefacts (trained neural SDFs, reduced models).
+"""The on-disk cache of built artefacts (trained neural SDFs, reduced models) and, for the
+command line, of JAX's compiled programs.
 
 Files live under :func:`cache_dir` (``$JSNAP_CACHE`` or ``~/.cache/jsnap``), named by a hash of
 everything they depend on, and are written atomically by their modules. :func:`load_or_make`
@@ -8,6 +9,10 @@ and load it, instead of each spending the build (the neural SDF's training is ~3
 The lock is an advisory ``flock`` on ``<file>.lock`` beside the file (POSIX; where ``fcntl`` is
 missing each process builds on its own, as before). Lock files are left in place: removing one
 while another process waits on it would let a third build beside it.
+
+:func:`use_compilation_cache` points JAX's persistent compilation cache at ``cache_dir()/xla``
+(the command line does; a library leaves that process-wide setting to its program), and
+:func:`usage` / :func:`clear` are what ``jsnap cache`` shows and removes.
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import os
+import shutil
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -22,7 +28,7 @@ from typing import TypeVar
 
 import numpy as np
 
-__all__ = ["cache_dir", "checksum", "load_or_make"]
+__all__ = ["KINDS", "cache_dir", "checksum", "clear", "load_or_make", "usage", "use_compilation_cache"]
 
 T = TypeVar("T")
 
@@ -31,6 +37,84 @@ def cache_dir() -> Path:
     """Where built artefacts are cached: ``$JSNAP_CACHE`` or ``~/.cache/jsnap``."""
     root = os.environ.get("JSNAP_CACHE")
     return Path(root) if root else Path.home() / ".cache" / "jsnap"
+
+
+# The cache's folders: what each holds.
+KINDS = {
+    "neural_sdf": "trained neural SDF weights (jsnap train-sdf, solver.sdf = neural)",
+    "reduced": "segmented and reduced socket models (solver.method = segmented | reduced)",
+    "xla": "JAX's compiled programs, kept by the command line (use_compilation_cache)",
+}
+
+
+def use_compilation_cache() -> Path | None:
+    """Keep JAX's compiled programs on disk, in ``cache_dir()/xla``, for this process.
+
+    The command line calls it (``jsnap simulate``, ``fit``, ``train-sdf``): a later run of the
+    same scene loads its compiled rollout instead of compiling it again. ``import jsnap`` does
+    not: JAX's compilation cache is a setting of the whole process, which a library leaves to
+    the program that uses it (a script sets it with one line, see the README's "Caches").
+
+    It changes nothing (and returns None) when ``JSNAP_XLA_CACHE=0``, when JAX already has a
+    cache folder (``JAX_COMPILATION_CACHE_DIR`` or ``jax.config``: that one is kept, and
+    returned) or when JAX's cache is switched off (``JAX_ENABLE_COMPILATION_CACHE=false``, as
+    ``jsnap bench`` runs its scripts: they measure compile times). JAX keeps the programs that
+    took at least ``jax_persistent_cache_min_compile_time_secs`` (1 s by default) to compile;
+    nothing evicts them (``jsnap cache --clear xla`` removes them). Call it before the first
+    compilation: JAX opens its cache once per process.
+
+    Returns:
+        The folder JAX's compilation cache uses, or None when it has none.
+    """
+    import jax
+
+    if not jax.config.jax_enable_compilation_cache:
+        return None
+    if jax.config.jax_compilation_cache_dir:
+        return Path(jax.config.jax_compilation_cache_dir)
+    if os.environ.get("JSNAP_XLA_CACHE", "1").strip().lower() in ("0", "false", "no", "off"):
+        return None
+    path = cache_dir() / "xla"
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    return path
+
+
+def _files(root: Path) -> list[Path]:
+    return [p for p in root.rglob("*") if p.is_file() and not p.name.endswith(".lock")]
+
+
+def usage() -> dict:
+    """Per folder of :data:`KINDS` (and any other folder found in the cache): its path, the
+    number of files it holds and their total size in bytes (lock files not counted)."""
+    root = cache_dir()
+    names = list(KINDS) + sorted(p.name for p in root.glob("*") if p.is_dir() and p.name not in KINDS)
+    out = {}
+    for name in names:
+        files = _files(root / name) if (root / name).is_dir() else []
+        size = sum(f.stat().st_size for f in files)
+        out[name] = {"path": str(root / name), "files": len(files), "bytes": size}
+    return out
+
+
+def clear(kinds=None) -> dict:
+    """Remove the cached files of the given folders (default: every folder); returns
+    ``{folder: bytes removed}``. Lock files stay (see the module's note); a process that is
+    building an artefact meanwhile writes it again. Unknown folder names raise ValueError."""
+    have = usage()
+    kinds = list(have) if kinds is None else list(kinds)
+    unknown = [k for k in kinds if k not in have]
+    if unknown:
+        raise ValueError(f"unknown cache folder(s) {unknown}; the cache has {sorted(have)}")
+    removed = {}
+    for kind in kinds:
+        root = Path(have[kind]["path"])
+        if kind == "xla":  # JAX's files only: remove the folder whole
+            shutil.rmtree(root, ignore_errors=True)
+        else:
+            for f in _files(root) if root.is_dir() else []:
+                f.unlink(missing_ok=True)
+        removed[kind] = have[kind]["bytes"]
+    return removed
 
 
 def checksum(meta_json: str, arrays: dict) -> str:

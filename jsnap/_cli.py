@@ -1,5 +1,10 @@
 """Command line: ``jsnap simulate [SCENE.toml] [--out DIR] [--json]``, ``jsnap train-sdf [MESH]``,
-``jsnap fit SCENE.toml MEASURED.csv [--fit E,friction,...] [--out DIR] [--json]``."""
+``jsnap fit SCENE.toml MEASURED.csv [--fit E,friction,...] [--out DIR] [--json]``, ``jsnap bench``,
+``jsnap cache [--clear [FOLDER ...]] [--json]``.
+
+``simulate``, ``train-sdf`` and ``fit`` keep JAX's compiled programs in the jsnap cache
+(:func:`jsnap._cache.use_compilation_cache`), so that a scene's second run skips most of its
+compilation."""
 
 from __future__ import annotations
 
@@ -278,6 +283,38 @@ def train_sdf(args) -> int:
     return 0
 
 
+def _size(n: int) -> str:
+    return f"{n / 1e6:.1f} MB" if n >= 1e5 else f"{n / 1e3:.0f} kB"
+
+
+def cache_command(args) -> int:
+    """``jsnap cache [--clear [FOLDER ...]] [--json]``: what the cache holds; remove it."""
+    from jsnap import _cache
+
+    if args.clear is not None:
+        try:
+            removed = _cache.clear(args.clear or None)
+        except ValueError as err:
+            print(f"jsnap: error: {err}", file=sys.stderr)
+            return 2
+        if args.json:
+            print(json.dumps({"cache": str(_cache.cache_dir()), "removed_bytes": removed}))
+        else:
+            for kind, n in removed.items():
+                print(f"jsnap cache: removed {kind} ({_size(n)})")
+        return 0
+    use = _cache.usage()
+    if args.json:
+        print(json.dumps({"cache": str(_cache.cache_dir()), "folders": use}))
+        return 0
+    print(f"jsnap cache: {_cache.cache_dir()} ($JSNAP_CACHE or ~/.cache/jsnap)")
+    for kind, u in use.items():
+        what = _cache.KINDS.get(kind, "(not jsnap's)")
+        print(f"  {kind:11s} {u['files']:5d} files {_size(u['bytes']):>9s}  {what}")
+    print(f"  total {_size(sum(u['bytes'] for u in use.values())):>27s}")
+    return 0
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="jsnap", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -319,7 +356,22 @@ def main(argv=None) -> int:
     fit.add_argument("--force-column", default=None, help="name of the force column (N) if not a standard one")
     fit.add_argument("--out", default="jsnap-fit", help="output directory (default jsnap-fit)")
     fit.add_argument("--json", action="store_true", help="print a JSON summary to stdout")
+    cache = sub.add_parser("cache", help="show what the jsnap cache holds; --clear removes it")
+    cache.add_argument(
+        "--clear",
+        nargs="*",
+        metavar="FOLDER",
+        default=None,
+        help="remove the cached files (of the given folders only: neural_sdf, reduced, xla)",
+    )
+    cache.add_argument("--json", action="store_true", help="print a JSON summary to stdout")
     args = parser.parse_args(argv)
+    if args.command == "cache":
+        return cache_command(args)
+    if args.command in ("simulate", "train-sdf", "fit"):
+        from jsnap._cache import use_compilation_cache
+
+        use_compilation_cache()
     if args.command == "train-sdf":
         return train_sdf(args)
     if args.command == "fit":

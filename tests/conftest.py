@@ -1,5 +1,7 @@
 """Shared fixtures: meshes and assemblies are built once per session (JAX compiles are slow)."""
 
+import os
+
 import numpy as np
 import pytest
 
@@ -7,6 +9,10 @@ import jsnap  # noqa: F401  (enables float64)
 from jsnap import _fem
 from jsnap._geometry import mesh_box
 from jsnap._integrate import SparseBlocks
+
+# The CLI tests call `main` in this process: keep its JAX compilation cache (a setting of the whole
+# process, see jsnap._cache.use_compilation_cache) from reaching every test after them.
+os.environ.setdefault("JSNAP_XLA_CACHE", "0")
 
 # The straight reference arm of refs/calculix-cantilever (tests/data/README.md).
 ARM = dict(L=10.0, h=1.2, b=4.0)

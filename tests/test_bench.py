@@ -74,15 +74,17 @@ def test_quick_xla_flags_keep_the_users():
 
 def test_full_run_untimed_side_by_side_then_timed_alone(tmp_path, monkeypatch):
     """A full run starts the untimed scripts together (two workers) and runs each timed one
-    alone after them; bench_times.json records which was which. Stand-in scripts log when they
-    start and end (the runner runs whatever benchmarks/<name>.py holds)."""
+    alone after them, all with JAX's compilation cache off; bench_times.json records which was
+    which. Stand-in scripts log when they start (and the setting they saw) and when they end
+    (the runner runs whatever benchmarks/<name>.py holds)."""
     bench = tmp_path / "benchmarks"
     (bench / "results").mkdir(parents=True)
     log = tmp_path / "log.txt"
     body = (
-        "import sys, time\n"
+        "import os, sys, time\n"
         "log = open({log!r}, 'a')\n"
-        "log.write(f'start {name} {{time.time()}} {{sys.argv[1:]}}\\n'); log.flush()\n"
+        "log.write(f'start {name} {{time.time()}} {{os.environ.get(\"JAX_ENABLE_COMPILATION_CACHE\")}}\\n')\n"
+        "log.flush()\n"
         "time.sleep(1.0)\n"
         "log.write(f'end {name} {{time.time()}}\\n')\n"
     )
@@ -90,11 +92,16 @@ def test_full_run_untimed_side_by_side_then_timed_alone(tmp_path, monkeypatch):
     for name in names:
         (bench / f"{name}.py").write_text(body.format(log=str(log), name=name))
     monkeypatch.setenv("JSNAP_BENCHMARKS", str(bench))
+    # A user's JAX compilation cache does not reach the scripts (they report compile times).
+    monkeypatch.setenv("JAX_ENABLE_COMPILATION_CACHE", "true")
     assert _bench.main([], quick=False, list_only=False, jobs=2) == 0
+    assert os.environ["JAX_ENABLE_COMPILATION_CACHE"] == "true"  # restored
     events = {}
     for line in log.read_text().splitlines():
         kind, name, t = line.split()[:3]
         events[(kind, name)] = float(t)
+        if kind == "start":
+            assert line.split()[3] == "false", line
     # The two untimed scripts overlapped; the timed one started after both had ended.
     assert events[("start", "stability")] < events[("end", "fem_convergence")]
     assert events[("start", "fem_convergence")] < events[("end", "stability")]

@@ -1,6 +1,8 @@
 """The build cache's cross-process behaviour (jsnap._cache): processes asking for the same file
 at once build it once; a corrupt file is rebuilt, once."""
 
+import json
+import os
 import subprocess
 import sys
 import textwrap
@@ -89,3 +91,122 @@ def test_fresh_rebuilds_and_a_bad_file_is_read_once(tmp_path):
     with pytest.warns(UserWarning) as caught:
         assert _cache.load_or_make(path, load, make, what="x") == "good"
     assert len(caught) == 1 and (len(reads), len(makes)) == (2, 3)  # unchanged under the lock: not re-read
+
+
+@pytest.fixture
+def jax_cache_config():
+    """Restores JAX's compilation-cache settings after a test that changes them (nothing is
+    compiled while they point at the test's folder)."""
+    import jax
+
+    names = ("jax_compilation_cache_dir", "jax_enable_compilation_cache")
+    old = {n: getattr(jax.config, n) for n in names}
+    yield jax.config
+    for n, v in old.items():
+        jax.config.update(n, v)
+
+
+def test_compilation_cache_folder_and_what_overrides_it(tmp_path, monkeypatch, jax_cache_config):
+    """The command line's JAX cache goes to <jsnap cache>/xla, unless JAX has a folder already
+    (kept), the user switched it off (JSNAP_XLA_CACHE=0) or JAX's cache is disabled."""
+    cfg = jax_cache_config
+    monkeypatch.setenv("JSNAP_CACHE", str(tmp_path))
+    monkeypatch.delenv("JSNAP_XLA_CACHE", raising=False)
+    cfg.update("jax_enable_compilation_cache", True)
+    cfg.update("jax_compilation_cache_dir", None)
+    assert _cache.use_compilation_cache() == tmp_path / "xla"
+    assert cfg.jax_compilation_cache_dir == str(tmp_path / "xla")
+
+    mine = str(tmp_path / "users_own")
+    cfg.update("jax_compilation_cache_dir", mine)
+    assert _cache.use_compilation_cache() == tmp_path / "users_own"
+    assert cfg.jax_compilation_cache_dir == mine
+
+    cfg.update("jax_compilation_cache_dir", None)
+    monkeypatch.setenv("JSNAP_XLA_CACHE", "0")
+    assert _cache.use_compilation_cache() is None
+    assert cfg.jax_compilation_cache_dir is None
+
+    monkeypatch.delenv("JSNAP_XLA_CACHE")
+    cfg.update("jax_enable_compilation_cache", False)
+    assert _cache.use_compilation_cache() is None
+    assert cfg.jax_compilation_cache_dir is None
+
+
+# Compiles one program with the command line's cache setting; prints whether JAX found it on disk
+# (its cache-hit event). The minimum compile time is lowered so that this small program is kept.
+COMPILER = textwrap.dedent(
+    """
+    import jax, jax.numpy as jnp
+    from jax import monitoring
+    from jsnap._cache import use_compilation_cache
+
+    hits = []
+    monitoring.register_event_listener(lambda e, **kw: hits.append(e) if "cache_hits" in e else None)
+    print("folder", use_compilation_cache())
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    f = jax.jit(lambda x: jnp.cumsum(jnp.sin(x) ** 2) @ x)
+    print("value", float(f(jnp.arange(64.0))), "hit", bool(hits))
+    """
+)
+
+
+def test_compiled_program_reloaded_by_the_next_process(tmp_path, capsys):
+    """A second process with the same setting loads the first one's compiled program from
+    <jsnap cache>/xla (same result), and `jsnap cache` counts and clears those files."""
+    env = {**os.environ, "JSNAP_CACHE": str(tmp_path)}
+    for k in ("JSNAP_XLA_CACHE", "JAX_COMPILATION_CACHE_DIR", "JAX_ENABLE_COMPILATION_CACHE"):
+        env.pop(k, None)
+    runs = [
+        subprocess.run(
+            [sys.executable, "-c", COMPILER], env=env, capture_output=True, text=True, check=True
+        ).stdout
+        for _ in range(2)
+    ]
+    assert runs[0].splitlines()[0] == f"folder {tmp_path / 'xla'}"
+    first, second = (r.splitlines()[1].split() for r in runs)
+    assert first[1] == second[1]  # the same value
+    assert (first[3], second[3]) == ("False", "True")  # compiled, then loaded
+
+    from jsnap._cli import main as cli_main
+
+    os.environ["JSNAP_CACHE"] = str(tmp_path)
+    try:
+        assert cli_main(["cache", "--json"]) == 0
+        xla = json.loads(capsys.readouterr().out)["folders"]["xla"]
+        assert xla["files"] >= 1 and xla["bytes"] > 0
+        assert cli_main(["cache", "--clear", "xla"]) == 0
+        assert not (tmp_path / "xla").exists()
+    finally:
+        del os.environ["JSNAP_CACHE"]
+
+
+def test_cache_command_lists_and_clears(tmp_path, monkeypatch, capsys):
+    """`jsnap cache` reports files and bytes per folder (lock files not counted) and
+    `--clear [FOLDER ...]` removes the named folders' files only, leaving the locks."""
+    from jsnap._cli import main as cli_main
+
+    monkeypatch.setenv("JSNAP_CACHE", str(tmp_path))
+    (tmp_path / "neural_sdf").mkdir()
+    (tmp_path / "reduced").mkdir()
+    (tmp_path / "neural_sdf" / "a.npz").write_bytes(b"x" * 100)
+    (tmp_path / "reduced" / "b.npz").write_bytes(b"y" * 300)
+    (tmp_path / "reduced" / "c.npz").write_bytes(b"z" * 50)
+    (tmp_path / "reduced" / "b.npz.lock").write_bytes(b"")
+
+    def listed():
+        assert cli_main(["cache", "--json"]) == 0
+        return {k: (v["files"], v["bytes"]) for k, v in json.loads(capsys.readouterr().out)["folders"].items()}
+
+    assert listed() == {"neural_sdf": (1, 100), "reduced": (2, 350), "xla": (0, 0)}
+    assert cli_main(["cache"]) == 0
+    assert "reduced" in capsys.readouterr().out
+    assert cli_main(["cache", "--clear", "reduced", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["removed_bytes"] == {"reduced": 350}
+    assert listed() == {"neural_sdf": (1, 100), "reduced": (0, 0), "xla": (0, 0)}
+    assert (tmp_path / "reduced" / "b.npz.lock").exists()
+    assert cli_main(["cache", "--clear", "nonsense"]) == 2
+    assert "nonsense" in capsys.readouterr().err
+    assert cli_main(["cache", "--clear"]) == 0
+    assert "removed neural_sdf" in capsys.readouterr().out
+    assert listed() == {"neural_sdf": (0, 0), "reduced": (0, 0), "xla": (0, 0)}
