@@ -87,6 +87,7 @@ class StepOutput(eqx.Module):
     overflow: jax.Array
     residual: jax.Array
     iterations: jax.Array
+    corrected: jax.Array
 
 
 class Result(eqx.Module):
@@ -109,7 +110,10 @@ class Result(eqx.Module):
         contact_point: (n, C, 3) slot positions, mm.   contact_active: (n, C) bool.
         contact_index: (n, C) candidate point of each slot (index into ``model.sample_rest``).
         overflow: (n,) candidates that did not fit in the buffer (0 = none dropped).
-        residual, iterations: (n,) contact solver's normalised KKT residual and iterations.
+        residual, iterations: (n,) contact solver's normalised KKT residual and iterations (of
+            the second solve where ``corrected``).
+        corrected: (n,) bool, the step was solved a second time: its solved motion carried
+            points that were not in the buffer into the plug (predict-correct, see ``step``).
         travel: (n,) plug travel along -z since t = 0, mm.
         x: (n, dof) socket displacement at free dofs, mm (None unless kept).
     """
@@ -131,6 +135,7 @@ class Result(eqx.Module):
     overflow: jax.Array
     residual: jax.Array
     iterations: jax.Array
+    corrected: jax.Array
     x: jax.Array | None
 
 
@@ -475,6 +480,7 @@ def step(model: Model, prepared: Prepared, state: State, control: jax.Array):
         overflow=prob.overflow,
         residual=sol.residual,
         iterations=sol.iterations,
+        corrected=jnp.any(fresh),
     )
     gamma = jnp.zeros_like(state.gamma).at[idx].set(sol.gamma * active[:, None])
     new = State(x_new, v_new, plug_new, vbar_p * 2 - state.plug_vel, control, state.t + T, gamma)
@@ -608,5 +614,6 @@ def _result(out: StepOutput, xs, model: Model, dtype) -> Result:
         overflow=out.overflow,
         residual=out.residual,
         iterations=out.iterations,
+        corrected=out.corrected,
         x=xs,
     )

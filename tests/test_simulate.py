@@ -6,6 +6,7 @@ and rolled out once per module.
 
 import json
 
+import jax
 import numpy as np
 import pytest
 
@@ -152,3 +153,22 @@ def test_cli_simulate_writes_outputs(tmp_path, capsys):
         assert (tmp_path / "out" / name).is_file()
     csv = np.loadtxt(tmp_path / "out" / "forces.csv", delimiter=",", skiprows=1)
     assert csv.shape[0] == summary["steps"]
+
+
+def test_predict_correct_keeps_released_points_out_of_the_plug():
+    """A stiff, light socket released by the plug springs back through the gap within a step;
+    the predict-correct pass solves those steps again with the points it would carry into the
+    plug, so that no candidate point ends a step deeper in the plug than the contact margin.
+    (Without the second solve this scene ends steps 0.25 mm deep, peak 3.7 kN instead of 0.28.)
+    """
+    from jsnap._sim import _plug_sdf
+
+    scene = jsnap.load_scene().replace(
+        {"solver.mesh_size": 2.0, "solver.element": "P1", "material.youngs_modulus": 2e4}
+    )
+    model = jsnap.build(scene)
+    res = jsnap.rollout(model, keep_x=True)
+    assert 0 < int(np.asarray(res.corrected).sum()) < 20
+    y = model.sample_rest[None] + jax.vmap(model.socket.sample_disp)(res.x)
+    phi = jax.vmap(lambda yy, p: _plug_sdf(model, yy - p)[0])(y, res.plug)
+    assert float(phi.min()) > -model.margin
