@@ -396,6 +396,8 @@ def step(model: Model, prepared: Prepared, state: State, control: jax.Array):
     Returns:
         ``(next_state, StepOutput)``.
     """
+    if jnp.shape(control) != (3,):
+        raise ValueError(f"control must be (3,), the desired plug centre in mm; got shape {jnp.shape(control)}")
     op = prepared.op
     T = op.dt
     dtype = state.x.dtype
@@ -527,6 +529,19 @@ def _check_params(params: Params) -> None:
             raise ValueError(f"Params.{name} must be {rng}, got {v}")
 
 
+def _check_controls(controls) -> None:
+    """``controls`` must be (steps, 3), steps >= 1, and finite (checked when not traced)."""
+    if controls.ndim != 2 or controls.shape[1] != 3 or controls.shape[0] < 1:
+        raise ValueError(
+            f"controls must be (steps, 3) desired plug centres, mm, with steps >= 1; got shape {controls.shape}"
+        )
+    if not isinstance(controls, jax.core.Tracer):
+        bad = ~np.isfinite(np.asarray(controls)).all(axis=1)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise ValueError(f"controls must be finite; row {i} (of {bad.size}) is {np.asarray(controls)[i]}")
+
+
 def progress_chunk(n_steps: int) -> int:
     """Steps per compiled chunk when ``rollout`` shows progress (20 updates)."""
     return max(1, math.ceil(n_steps / 20))
@@ -553,16 +568,31 @@ def rollout(
         keep_x: also return the displacement history (``Result.x``).
         progress: show a progress bar (runs the scan in chunks; not for use under ``jit``).
         prepared: ``prepare(model, params)`` computed once and reused (it factorises the PMI
-            operator, ~n^3 for the full model); ``params`` is then ignored.
+            operator, ~n^3 for the full model); give it or ``params``, not both.
+
+    Raises:
+        ValueError: controls not (steps, 3) or not finite, a dtype other than float32/float64,
+            both ``params`` and ``prepared``, or non-finite or impossible parameter values.
     """
     dtype = jnp.dtype(dtype or model.dtype)
+    if dtype not in (jnp.float32, jnp.float64):
+        raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype.name!r}")
     if prepared is None:
         _check_params(model.params if params is None else params)
         prepared = prepare(model, params)
+    elif params is not None and params is not prepared.params:
+        # Silently ignoring params would be a wrong answer (and a zero gradient under jax.grad).
+        raise ValueError(
+            "rollout got both params and prepared: prepared = prepare(model, params) holds the "
+            "parameters it was made from; pass one of them"
+        )
     prepared = _cast(prepared, dtype)
     m = _cast(model, dtype)
     if controls is None:
         controls = model.trajectory()[1:]
+    if not isinstance(controls, jax.core.Tracer):
+        controls = np.asarray(controls)  # checked on the host before it is cast
+    _check_controls(controls)
     controls = jnp.asarray(controls, dtype)
     state = init_state(model, dtype)
     # The plug starts moving with the drive (no start-up transient in the virtual coupling).

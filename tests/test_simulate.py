@@ -128,6 +128,29 @@ def test_bad_parameters_are_errors(default_coarse):
             jsnap.rollout(model, model.params.replace(**{field: value}))
 
 
+def test_bad_rollout_arguments_are_errors(default_coarse):
+    """Wrong controls, a dtype jsnap does not roll out in and params beside prepared (they would
+    be ignored) are errors that name the argument, raised before anything is compiled."""
+    _, model, _ = default_coarse
+    good = np.asarray(model.trajectory()[1:6])
+    for controls in (good[0], good[:, :2], good[:0]):
+        with pytest.raises(ValueError, match=r"controls must be \(steps, 3\)"):
+            jsnap.rollout(model, controls=controls)
+    bad = good.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(ValueError, match="controls must be finite; row 3"):
+        jsnap.rollout(model, controls=bad)
+    for dtype in ("float16", "int32"):
+        with pytest.raises(ValueError, match=f"dtype must be 'float32' or 'float64', got '{dtype}'"):
+            jsnap.rollout(model, controls=good, dtype=dtype)
+    prepared = jsnap.prepare(model)
+    with pytest.raises(ValueError, match="both params and prepared"):
+        jsnap.rollout(model, model.params.replace(E=1000.0), controls=good, prepared=prepared)
+    state = jsnap._sim.init_state(model)
+    with pytest.raises(ValueError, match=r"control must be \(3,\)"):
+        jsnap.step(model, prepared, state, good[:2])
+
+
 def test_motion_that_never_touches_is_an_error():
     with pytest.raises(SceneError, match="never touches"):
         jsnap.build(jsnap.load_scene().replace({**COARSE, "motion.stroke": 0.01}))
