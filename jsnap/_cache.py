@@ -22,6 +22,7 @@ import hashlib
 import os
 import shutil
 import sys
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import TypeVar
@@ -55,10 +56,11 @@ def use_compilation_cache() -> Path | None:
     not: JAX's compilation cache is a setting of the whole process, which a library leaves to
     the program that uses it (a script sets it with one line, see the README's "Caches").
 
-    It changes nothing (and returns None) when ``JSNAP_XLA_CACHE=0``, when JAX already has a
-    cache folder (``JAX_COMPILATION_CACHE_DIR`` or ``jax.config``: that one is kept, and
-    returned) or when JAX's cache is switched off (``JAX_ENABLE_COMPILATION_CACHE=false``, as
-    ``jsnap bench`` runs its scripts: they measure compile times). JAX keeps the programs that
+    It changes nothing (and returns None) when ``JSNAP_XLA_CACHE=0``, when the folder cannot be
+    written (with one warning), when JAX already has a cache folder (``JAX_COMPILATION_CACHE_DIR``
+    or ``jax.config``: that one is kept, and returned) or when JAX's cache is switched off
+    (``JAX_ENABLE_COMPILATION_CACHE=false``, as ``jsnap bench`` runs its scripts: they measure
+    compile times). JAX keeps the programs that
     took at least ``jax_persistent_cache_min_compile_time_secs`` (1 s by default) to compile;
     nothing evicts them (``jsnap cache --clear xla`` removes them). Call it before the first
     compilation: JAX opens its cache once per process.
@@ -75,6 +77,13 @@ def use_compilation_cache() -> Path | None:
     if os.environ.get("JSNAP_XLA_CACHE", "1").strip().lower() in ("0", "false", "no", "off"):
         return None
     path = cache_dir() / "xla"
+    try:  # JAX would warn on every compilation instead
+        path.mkdir(parents=True, exist_ok=True)
+        if not os.access(path, os.W_OK):
+            raise PermissionError(f"{path} is not writable")
+    except OSError as err:
+        warnings.warn(f"jsnap: compiling without a compilation cache ({err})", stacklevel=2)
+        return None
     jax.config.update("jax_compilation_cache_dir", str(path))
     return path
 

@@ -108,7 +108,8 @@ def jax_cache_config():
 
 def test_compilation_cache_folder_and_what_overrides_it(tmp_path, monkeypatch, jax_cache_config):
     """The command line's JAX cache goes to <jsnap cache>/xla, unless JAX has a folder already
-    (kept), the user switched it off (JSNAP_XLA_CACHE=0) or JAX's cache is disabled."""
+    (kept), the user switched it off (JSNAP_XLA_CACHE=0), the folder cannot be made or JAX's
+    cache is disabled."""
     cfg = jax_cache_config
     monkeypatch.setenv("JSNAP_CACHE", str(tmp_path))
     monkeypatch.delenv("JSNAP_XLA_CACHE", raising=False)
@@ -128,6 +129,13 @@ def test_compilation_cache_folder_and_what_overrides_it(tmp_path, monkeypatch, j
     assert cfg.jax_compilation_cache_dir is None
 
     monkeypatch.delenv("JSNAP_XLA_CACHE")
+    (tmp_path / "a_file").write_text("")  # a cache "folder" that cannot hold one: one warning
+    monkeypatch.setenv("JSNAP_CACHE", str(tmp_path / "a_file"))
+    with pytest.warns(UserWarning, match="compiling without a compilation cache"):
+        assert _cache.use_compilation_cache() is None
+    assert cfg.jax_compilation_cache_dir is None
+
+    monkeypatch.setenv("JSNAP_CACHE", str(tmp_path))
     cfg.update("jax_enable_compilation_cache", False)
     assert _cache.use_compilation_cache() is None
     assert cfg.jax_compilation_cache_dir is None
