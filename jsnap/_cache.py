@@ -93,12 +93,12 @@ def _files(root: Path) -> list[Path]:
 
 
 def usage() -> dict:
-    """Per folder of :data:`KINDS` (and any other folder found in the cache): its path, the
-    number of files it holds and their total size in bytes (lock files not counted)."""
+    """Per folder of :data:`KINDS`: its path, the number of files it holds and their total size
+    in bytes (lock files not counted). Nothing else in the cache folder is looked at: it may be
+    a folder of the user's that holds other things."""
     root = cache_dir()
-    names = list(KINDS) + sorted(p.name for p in root.glob("*") if p.is_dir() and p.name not in KINDS)
     out = {}
-    for name in names:
+    for name in KINDS:
         files = _files(root / name) if (root / name).is_dir() else []
         size = sum(f.stat().st_size for f in files)
         out[name] = {"path": str(root / name), "files": len(files), "bytes": size}
@@ -106,14 +106,14 @@ def usage() -> dict:
 
 
 def clear(kinds=None) -> dict:
-    """Remove the cached files of the given folders (default: every folder); returns
-    ``{folder: bytes removed}``. Lock files stay (see the module's note); a process that is
-    building an artefact meanwhile writes it again. Unknown folder names raise ValueError."""
-    have = usage()
-    kinds = list(have) if kinds is None else list(kinds)
-    unknown = [k for k in kinds if k not in have]
+    """Remove the cached files of the given folders of :data:`KINDS` (default: all three);
+    returns ``{folder: bytes removed}``. Lock files stay (see the module's note); a process that
+    is building an artefact meanwhile writes it again. Other names raise ValueError."""
+    kinds = list(KINDS) if kinds is None else list(kinds)
+    unknown = [k for k in kinds if k not in KINDS]
     if unknown:
-        raise ValueError(f"unknown cache folder(s) {unknown}; the cache has {sorted(have)}")
+        raise ValueError(f"unknown cache folder(s) {unknown}; jsnap's are {list(KINDS)}")
+    have = usage()
     removed = {}
     for kind in kinds:
         root = Path(have[kind]["path"])

@@ -2,9 +2,9 @@
 ``jsnap fit SCENE.toml MEASURED.csv [--fit E,friction,...] [--out DIR] [--json]``, ``jsnap bench``,
 ``jsnap cache [--clear [FOLDER ...]] [--json]``.
 
-``simulate``, ``train-sdf`` and ``fit`` keep JAX's compiled programs in the jsnap cache
-(:func:`jsnap._cache.use_compilation_cache`), so that a scene's second run skips most of its
-compilation."""
+``simulate``, ``train-sdf`` and ``fit`` keep JAX's compiled programs in the jsnap cache, so that
+a scene's second run skips most of its compilation (see the README's "Caches"; off with
+JSNAP_XLA_CACHE=0)."""
 
 from __future__ import annotations
 
@@ -309,7 +309,7 @@ def cache_command(args) -> int:
         return 0
     print(f"jsnap cache: {_cache.cache_dir()} ($JSNAP_CACHE or ~/.cache/jsnap)")
     for kind, u in use.items():
-        what = _cache.KINDS.get(kind, "(not jsnap's)")
+        what = _cache.KINDS[kind]
         print(f"  {kind:11s} {u['files']:5d} files {_size(u['bytes']):>9s}  {what}")
     print(f"  total {_size(sum(u['bytes'] for u in use.values())):>27s}")
     return 0

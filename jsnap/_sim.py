@@ -143,8 +143,10 @@ def prepare(model: Model, params: Params | None = None) -> Prepared:
     """The socket's PMI operator for ``params`` (default: the scene's), float64.
 
     Differentiable with respect to every field of ``params``; cost ~ n^3 for the full model.
+    Non-finite or impossible values are a ValueError naming the field (not checked when traced).
     """
     params = model.params if params is None else params
+    _check_params(params)
     return Prepared(params, model.socket.prepare(params.material, model.dt))
 
 
@@ -578,7 +580,6 @@ def rollout(
     if dtype not in (jnp.float32, jnp.float64):
         raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype.name!r}")
     if prepared is None:
-        _check_params(model.params if params is None else params)
         prepared = prepare(model, params)
     elif params is not None and params is not prepared.params:
         # Silently ignoring params would be a wrong answer (and a zero gradient under jax.grad).

@@ -191,7 +191,8 @@ def test_compiled_program_reloaded_by_the_next_process(tmp_path, capsys):
 
 def test_cache_command_lists_and_clears(tmp_path, monkeypatch, capsys):
     """`jsnap cache` reports files and bytes per folder (lock files not counted) and
-    `--clear [FOLDER ...]` removes the named folders' files only, leaving the locks."""
+    `--clear [FOLDER ...]` removes the named folders' files only, leaving the locks; nothing
+    outside jsnap's folders is listed or removed."""
     from jsnap._cli import main as cli_main
 
     monkeypatch.setenv("JSNAP_CACHE", str(tmp_path))
@@ -201,6 +202,8 @@ def test_cache_command_lists_and_clears(tmp_path, monkeypatch, capsys):
     (tmp_path / "reduced" / "b.npz").write_bytes(b"y" * 300)
     (tmp_path / "reduced" / "c.npz").write_bytes(b"z" * 50)
     (tmp_path / "reduced" / "b.npz.lock").write_bytes(b"")
+    (tmp_path / "other").mkdir()  # JSNAP_CACHE may be a folder that holds other things too
+    (tmp_path / "other" / "keep.txt").write_text("not jsnap's")
 
     def listed():
         assert cli_main(["cache", "--json"]) == 0
@@ -218,3 +221,4 @@ def test_cache_command_lists_and_clears(tmp_path, monkeypatch, capsys):
     assert cli_main(["cache", "--clear"]) == 0
     assert "removed neural_sdf" in capsys.readouterr().out
     assert listed() == {"neural_sdf": (0, 0), "reduced": (0, 0), "xla": (0, 0)}
+    assert (tmp_path / "other" / "keep.txt").read_text() == "not jsnap's"

@@ -126,6 +126,8 @@ def test_bad_parameters_are_errors(default_coarse):
     for field, value in (("E", float("nan")), ("friction", float("inf")), ("nu", 0.5), ("rho", -1.0)):
         with pytest.raises(ValueError, match=f"Params.{field}"):
             jsnap.rollout(model, model.params.replace(**{field: value}))
+        with pytest.raises(ValueError, match=f"Params.{field}"):
+            jsnap.prepare(model, model.params.replace(**{field: value}))
 
 
 def test_bad_rollout_arguments_are_errors(default_coarse):
