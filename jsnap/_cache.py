@@ -60,10 +60,10 @@ def use_compilation_cache() -> Path | None:
     written (with one warning), when JAX already has a cache folder (``JAX_COMPILATION_CACHE_DIR``
     or ``jax.config``: that one is kept, and returned) or when JAX's cache is switched off
     (``JAX_ENABLE_COMPILATION_CACHE=false``, as ``jsnap bench`` runs its scripts: they measure
-    compile times). JAX keeps the programs that
-    took at least ``jax_persistent_cache_min_compile_time_secs`` (1 s by default) to compile;
-    nothing evicts them (``jsnap cache --clear xla`` removes them). Call it before the first
-    compilation: JAX opens its cache once per process.
+    compile times). JAX keeps the programs that took at least
+    ``jax_persistent_cache_min_compile_time_secs`` (1 s by default) to compile; nothing evicts
+    them (``jsnap cache --clear xla`` removes them). Call it before the first compilation: JAX
+    opens its cache once per process.
 
     Returns:
         The folder JAX's compilation cache uses, or None when it has none.
@@ -92,17 +92,17 @@ def _files(root: Path) -> list[Path]:
     return [p for p in root.rglob("*") if p.is_file() and not p.name.endswith(".lock")]
 
 
+def _folder(name: str) -> dict:
+    root = cache_dir() / name
+    files = _files(root) if root.is_dir() else []
+    return {"path": str(root), "files": len(files), "bytes": sum(f.stat().st_size for f in files)}
+
+
 def usage() -> dict:
     """Per folder of :data:`KINDS`: its path, the number of files it holds and their total size
     in bytes (lock files not counted). Nothing else in the cache folder is looked at: it may be
     a folder of the user's that holds other things."""
-    root = cache_dir()
-    out = {}
-    for name in KINDS:
-        files = _files(root / name) if (root / name).is_dir() else []
-        size = sum(f.stat().st_size for f in files)
-        out[name] = {"path": str(root / name), "files": len(files), "bytes": size}
-    return out
+    return {name: _folder(name) for name in KINDS}
 
 
 def clear(kinds=None) -> dict:
@@ -113,16 +113,15 @@ def clear(kinds=None) -> dict:
     unknown = [k for k in kinds if k not in KINDS]
     if unknown:
         raise ValueError(f"unknown cache folder(s) {unknown}; jsnap's are {list(KINDS)}")
-    have = usage()
     removed = {}
     for kind in kinds:
-        root = Path(have[kind]["path"])
-        if kind == "xla":  # JAX's files only: remove the folder whole
+        root = cache_dir() / kind
+        removed[kind] = _folder(kind)["bytes"]
+        if kind == "xla":  # JAX's files only (no jsnap lock among them): the folder whole
             shutil.rmtree(root, ignore_errors=True)
         else:
             for f in _files(root) if root.is_dir() else []:
                 f.unlink(missing_ok=True)
-        removed[kind] = have[kind]["bytes"]
     return removed
 
 

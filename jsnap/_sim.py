@@ -450,7 +450,8 @@ def step(model: Model, prepared: Prepared, state: State, control: jax.Array):
         # reverse mode (its carry holds the whole problem, the dense contact operator included).
         return (prob2, *_solve(model, prob2, sizes=(prob2.mu.shape[0],)))
 
-    prob, sol, Gamma = jax.lax.cond(jnp.any(fresh), correct, lambda _: (prob, sol, Gamma), None)
+    corrected = jnp.any(fresh)
+    prob, sol, Gamma = jax.lax.cond(corrected, correct, lambda _: (prob, sol, Gamma), None)
     idx, A, active = prob.idx, prob.A, prob.active
 
     # 4. Update.
@@ -484,7 +485,7 @@ def step(model: Model, prepared: Prepared, state: State, control: jax.Array):
         overflow=prob.overflow,
         residual=sol.residual,
         iterations=sol.iterations,
-        corrected=jnp.any(fresh),
+        corrected=corrected,
     )
     gamma = jnp.zeros_like(state.gamma).at[idx].set(sol.gamma * active[:, None])
     new = State(x_new, v_new, plug_new, vbar_p * 2 - state.plug_vel, control, state.t + T, gamma)

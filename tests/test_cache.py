@@ -159,7 +159,7 @@ COMPILER = textwrap.dedent(
 )
 
 
-def test_compiled_program_reloaded_by_the_next_process(tmp_path, capsys):
+def test_compiled_program_reloaded_by_the_next_process(tmp_path, monkeypatch, capsys):
     """A second process with the same setting loads the first one's compiled program from
     <jsnap cache>/xla (same result), and `jsnap cache` counts and clears those files."""
     env = {**os.environ, "JSNAP_CACHE": str(tmp_path)}
@@ -178,15 +178,12 @@ def test_compiled_program_reloaded_by_the_next_process(tmp_path, capsys):
 
     from jsnap._cli import main as cli_main
 
-    os.environ["JSNAP_CACHE"] = str(tmp_path)
-    try:
-        assert cli_main(["cache", "--json"]) == 0
-        xla = json.loads(capsys.readouterr().out)["folders"]["xla"]
-        assert xla["files"] >= 1 and xla["bytes"] > 0
-        assert cli_main(["cache", "--clear", "xla"]) == 0
-        assert not (tmp_path / "xla").exists()
-    finally:
-        del os.environ["JSNAP_CACHE"]
+    monkeypatch.setenv("JSNAP_CACHE", str(tmp_path))
+    assert cli_main(["cache", "--json"]) == 0
+    xla = json.loads(capsys.readouterr().out)["folders"]["xla"]
+    assert xla["files"] >= 1 and xla["bytes"] > 0
+    assert cli_main(["cache", "--clear", "xla"]) == 0
+    assert not (tmp_path / "xla").exists()
 
 
 def test_cache_command_lists_and_clears(tmp_path, monkeypatch, capsys):
