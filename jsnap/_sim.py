@@ -532,17 +532,21 @@ def _check_params(params: Params) -> None:
             raise ValueError(f"Params.{name} must be {rng}, got {v}")
 
 
-def _check_controls(controls) -> None:
-    """``controls`` must be (steps, 3), steps >= 1, and finite (checked when not traced)."""
+def _check_controls(controls):
+    """``controls`` must be (steps, 3), steps >= 1, and finite (checked when not traced).
+    Returns them as a host array when concrete (checked there, before the cast), else as is."""
+    if not isinstance(controls, jax.core.Tracer):
+        controls = np.asarray(controls)
     if controls.ndim != 2 or controls.shape[1] != 3 or controls.shape[0] < 1:
         raise ValueError(
             f"controls must be (steps, 3) desired plug centres, mm, with steps >= 1; got shape {controls.shape}"
         )
-    if not isinstance(controls, jax.core.Tracer):
-        bad = ~np.isfinite(np.asarray(controls)).all(axis=1)
+    if isinstance(controls, np.ndarray):
+        bad = ~np.isfinite(controls).all(axis=1)
         if bad.any():
             i = int(np.argmax(bad))
-            raise ValueError(f"controls must be finite; row {i} (of {bad.size}) is {np.asarray(controls)[i]}")
+            raise ValueError(f"controls must be finite; row {i} (of {bad.size}) is {controls[i]}")
+    return controls
 
 
 def progress_chunk(n_steps: int) -> int:
@@ -592,9 +596,7 @@ def rollout(
     m = _cast(model, dtype)
     if controls is None:
         controls = model.trajectory()[1:]
-    if not isinstance(controls, jax.core.Tracer):
-        controls = np.asarray(controls)  # checked on the host before it is cast
-    _check_controls(controls)
+    controls = _check_controls(controls)
     controls = jnp.asarray(controls, dtype)
     state = init_state(model, dtype)
     # The plug starts moving with the drive (no start-up transient in the virtual coupling).
