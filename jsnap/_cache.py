@@ -92,9 +92,14 @@ def _files(root: Path) -> list[Path]:
     return [p for p in root.rglob("*") if p.is_file() and not p.name.endswith(".lock")]
 
 
-def _folder(name: str) -> dict:
+def _listing(name: str) -> tuple[Path, list[Path]]:
+    """A folder of :data:`KINDS` and its files (lock files not counted)."""
     root = cache_dir() / name
-    files = _files(root) if root.is_dir() else []
+    return root, (_files(root) if root.is_dir() else [])
+
+
+def _folder(name: str) -> dict:
+    root, files = _listing(name)
     return {"path": str(root), "files": len(files), "bytes": sum(f.stat().st_size for f in files)}
 
 
@@ -115,12 +120,12 @@ def clear(kinds=None) -> dict:
         raise ValueError(f"unknown cache folder(s) {unknown}; jsnap's are {list(KINDS)}")
     removed = {}
     for kind in kinds:
-        root = cache_dir() / kind
-        removed[kind] = _folder(kind)["bytes"]
+        root, files = _listing(kind)  # one walk: the bytes reported are the files removed
+        removed[kind] = sum(f.stat().st_size for f in files)
         if kind == "xla":  # JAX's files only (no jsnap lock among them): the folder whole
             shutil.rmtree(root, ignore_errors=True)
         else:
-            for f in _files(root) if root.is_dir() else []:
+            for f in files:
                 f.unlink(missing_ok=True)
     return removed
 
