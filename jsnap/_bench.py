@@ -578,8 +578,9 @@ def main(names: list[str], quick: bool, list_only: bool, jobs: int | None = None
         return 2
     # Quick: two workers by default (compilation, 1.3x faster here). Full: one. Two at a time
     # ran the untimed scripts hardly faster on this 2-core machine, memory-bound as they are
-    # (session 6: 830 s, about the sum of their times alone; session 5: 933 s against ~1035 s),
-    # and stretched each ~2x, incidental timings included.
+    # (session 6: 830 s, about the sum of their times alone; session 5: 933 s against ~1035 s;
+    # session 15: 922 s against session 14's 925 s one at a time), and stretched each ~2x,
+    # incidental timings included.
     jobs = jobs or (min(2, os.cpu_count() or 1) if quick else 1)
     todo = [known[n] for n in names] if names else benches
     t_all = time.perf_counter()
