@@ -98,9 +98,13 @@ def _listing(name: str) -> tuple[Path, list[Path]]:
     return root, (_files(root) if root.is_dir() else [])
 
 
+def _size(files: list[Path]) -> int:
+    return sum(f.stat().st_size for f in files)
+
+
 def _folder(name: str) -> dict:
     root, files = _listing(name)
-    return {"path": str(root), "files": len(files), "bytes": sum(f.stat().st_size for f in files)}
+    return {"path": str(root), "files": len(files), "bytes": _size(files)}
 
 
 def usage() -> dict:
@@ -121,7 +125,7 @@ def clear(kinds=None) -> dict:
     removed = {}
     for kind in kinds:
         root, files = _listing(kind)  # one walk: the bytes reported are the files removed
-        removed[kind] = sum(f.stat().st_size for f in files)
+        removed[kind] = _size(files)
         if kind == "xla":  # JAX's files only (no jsnap lock among them): the folder whole
             shutil.rmtree(root, ignore_errors=True)
         else:

@@ -43,8 +43,8 @@ from jsnap._util import safe_norm
 # random test problems with clustered top eigenvalues came out 4 % below ‖W‖ even after the
 # factor 1.1; with 50, the worst of 300 was 1 % above. Session 14 tried 300 other problems (3C =
 # 12-192: low-rank Wishart, a top cluster over a bulk up to 0.99 of it, near-duplicate rows): the
-# worst came out at 0.864 ||W|| in float32 (0.945 in float64) before the factor, so L can be ~5 %
-# short: a step ~5 % past FISTA's 1/||W|| (a projected-gradient step converges below 2/||W||, and
+# worst came out at 0.864 ‖W‖ in float32 (0.945 in float64) before the factor, so L can be ~5 %
+# short: a step ~5 % past FISTA's 1/‖W‖ (a projected-gradient step converges below 2/‖W‖, and
 # the solver returns its best iterate by the residual). Lanczos with 10 steps and full
 # reorthogonalisation was closer (worst 0.932) but not faster: 419-557 against 381-509 us per
 # step on the 1344-dof reduced scene with light contact, side by side (the LAPACK eigensolver of
