@@ -93,7 +93,7 @@ _SCHEMA: dict[str, dict[str, _Key]] = {
         "width_spacing": _Key(float, 1.0, _positive, doc="candidate spacing across width, mm"),
         "margin": _Key(float, 0.02, _nonneg, doc="distance below which a point is a candidate, mm"),
         "compliance": _Key(float, 0.0, _nonneg, doc="contact regularisation per point, mm/N"),
-        "solver": _Key(str, "apgd", choices=("apgd", "pgs"), doc="cone-complementarity solver"),
+        "solver": _Key(str, "apgd", choices=("apgd", "admm", "pgs"), doc="cone-complementarity solver"),
         "iterations": _Key(int, 500, _positive, doc="maximum solver iterations per step"),
         "tolerance": _Key(float, 1e-6, _positive, doc="normalised KKT residual to stop at"),
         "gradient": _Key(

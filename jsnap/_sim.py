@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jsnap._contact import solve_apgd, solve_pgs
+from jsnap._contact import solve_admm, solve_apgd, solve_pgs
 from jsnap._implicit import implicit_solver
 from jsnap._model import Model, Params
 from jsnap._neural_sdf import neural_sdf_and_normal
@@ -357,7 +357,7 @@ def _solve(model: Model, prob: ContactProblem, sizes: tuple[int, ...] | None = N
     faster per step). Under ``vmap`` the switch runs every branch (selects), ~1.3x the full cost.
     ``sizes`` overrides the sizes (the predict-correct second solve uses the whole buffer).
     """
-    solve = solve_apgd if model.contact_solver == "apgd" else solve_pgs
+    solve = {"apgd": solve_apgd, "admm": solve_admm, "pgs": solve_pgs}[model.contact_solver]
     if model.contact_gradient == "implicit":  # derivatives of the solution, not the iterations
         solve = implicit_solver(solve)
     C = prob.mu.shape[0]

@@ -1,4 +1,4 @@
-"""Contact solvers: cone projection, KKT conditions, independent solvers, PGS vs APGD.
+"""Contact solvers: cone projection, KKT conditions, independent solvers, PGS vs APGD, ADMM.
 
 Units: forces N, velocities mm/s, Delassus matrices mm/(s·N).
 """
@@ -20,7 +20,9 @@ from jsnap._contact import (
     ContactSolution,
     kkt_residual,
     kkt_terms,
+    _spd_inverse,
     project_cone,
+    solve_admm,
     solve_apgd,
     solve_pgs,
     symmetric_squeeze_problem,
@@ -43,6 +45,7 @@ TIGHT = 1e-10  # for comparisons with exact or independent solutions
 # and gamma0 are traced arguments, always passed (zeros = cold start).
 _apgd_jit = jax.jit(functools.partial(solve_apgd, max_iters=20000))
 _pgs_jit = jax.jit(functools.partial(solve_pgs, max_iters=1000))
+_admm_jit = jax.jit(functools.partial(solve_admm, max_iters=20000))
 _project = jax.jit(project_cone)  # eager JAX dispatches op by op: seconds per call
 
 
@@ -56,6 +59,12 @@ def pgs(W, q, mu, mask, tol=TOL, gamma0=None):
     """PGS, at most 1000 sweeps."""
     gamma0 = np.zeros((len(mu), 3)) if gamma0 is None else gamma0
     return _pgs_jit(W, q, mu, mask, tol=tol, gamma0=gamma0)
+
+
+def admm(W, q, mu, mask, tol=TOL, gamma0=None):
+    """ADMM, at most 20000 iterations."""
+    gamma0 = np.zeros((len(mu), 3)) if gamma0 is None else gamma0
+    return _admm_jit(W, q, mu, mask, tol=tol, gamma0=gamma0)
 
 
 @jax.jit
@@ -420,6 +429,64 @@ def test_symmetric_squeeze_pgs_stalls_apgd_converges():
 
 
 # ----------------------------------------------------------------------------------------------
+# ADMM: the same solutions as APGD, by an independent iteration
+
+
+@settings(PROPS, max_examples=12)
+@given(seeds, st.sampled_from([8, 24]), n_kinds)
+def test_admm_satisfies_kkt_and_agrees_with_apgd(seed, C, n_kind):
+    """ADMM meets the tolerance on the KKT residual with feasible forces; solved tightly, it
+    reaches APGD's objective and contact velocities (γ itself need not be unique when W is
+    singular; the objective and u = Wγ + q are)."""
+    W, q, mu, mask = random_problem(seed, C, n_kind)
+    sol = admm(W, q, mu, mask)
+    assert bool(sol.converged)
+    gamma = np.asarray(sol.gamma)
+    assert np.all(gamma[~mask] == 0.0)
+    r = residual(W, q, mu, mask, gamma)
+    assert r <= TOL
+    np.testing.assert_allclose(float(sol.residual), r, rtol=1e-9, atol=1e-300)
+    primal, dual, comp = terms(W, q, mu, mask, gamma)
+    assert primal <= 1e-14  # the returned iterate is a projection
+    assert dual <= 2 * TOL and comp <= 2 * TOL
+    a, d = apgd(W, q, mu, mask, tol=TIGHT), admm(W, q, mu, mask, tol=TIGHT)
+    assert bool(a.converged) and bool(d.converged)
+    fa, fd = objective(W, q, a.gamma), objective(W, q, d.gamma)
+    scale = np.abs(q).max() * max(np.abs(np.asarray(a.gamma)).max(), 1e-300)
+    assert abs(fa - fd) <= 1e-8 * scale
+    u = [W @ np.asarray(g.gamma).reshape(-1) + q for g in (a, d)]
+    np.testing.assert_allclose(u[1][np.repeat(mask, 3)], u[0][np.repeat(mask, 3)], atol=1e-6 * np.abs(q).max())
+
+
+def test_admm_on_the_symmetric_squeeze():
+    """The squeeze's ill-conditioning (cond(W) > 1e4) is what ADMM's (W + ρI)⁻¹ absorbs: it
+    converges in fewer iterations than APGD, to the same mirror-image forces."""
+    P = symmetric_squeeze_problem(n_per_side=4, mobility_ratio=300.0, mu=0.3)
+    a, d = apgd(P.W, P.q, P.mu, P.mask), admm(P.W, P.q, P.mu, P.mask)
+    assert bool(d.converged)
+    assert int(d.iterations) < int(a.iterations)
+    ref = np.asarray(apgd(P.W, P.q, P.mu, P.mask, tol=TIGHT).gamma)
+    g = np.asarray(admm(P.W, P.q, P.mu, P.mask, tol=TIGHT).gamma)
+    # W is singular here, so only W γ (the velocities) and what it fixes are unique: the normal
+    # forces, and the tangential ones up to a null-space share (1e-8 N of 2e-4 N measured).
+    u = [P.W @ x.reshape(-1) + P.q for x in (ref, g)]
+    np.testing.assert_allclose(u[1], u[0], rtol=0, atol=1e-7 * np.abs(P.q).max())
+    np.testing.assert_allclose(g[:, 0], ref[:, 0], rtol=1e-6)
+    left, right = g[P.mask][:4], g[P.mask][4:]
+    np.testing.assert_allclose(left, right, rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize("n", [1, 9, 36])
+def test_spd_inverse_against_numpy(n):
+    rng = np.random.default_rng(n)
+    B = rng.standard_normal((n, n + 2))
+    A = B @ B.T / n + 1e-3 * np.eye(n)  # condition number up to ~1e4
+    X = np.asarray(jax.jit(_spd_inverse)(A))
+    np.testing.assert_allclose(X, np.linalg.inv(A), rtol=1e-9 * np.linalg.cond(A), atol=0)
+    np.testing.assert_allclose(X, X.T, rtol=0, atol=1e-12 * np.abs(X).max())
+
+
+# ----------------------------------------------------------------------------------------------
 # JAX behaviour: vmap, jit, dtypes, warm start, gradients, errors
 
 
@@ -437,12 +504,12 @@ def test_vmap_equals_loop_and_no_recompile():
     assert _apgd_jit._cache_size() == n_compiled
 
 
-@pytest.mark.parametrize("solver", ["apgd", "pgs"])
+@pytest.mark.parametrize("solver", ["apgd", "pgs", "admm"])
 def test_while_loop_takes_the_frozen_scans_iterates(solver):
     """The forward-only solve (``differentiable=False``: a while loop of two steps per trip)
     stops where the differentiable frozen scan freezes, with the same iterate: converged, and
     cut by an odd or even cap (the loop's last trip then has a step past the cap, frozen)."""
-    f = {"apgd": solve_apgd, "pgs": solve_pgs}[solver]
+    f = {"apgd": solve_apgd, "pgs": solve_pgs, "admm": solve_admm}[solver]
     problems = [random_problem(s, 8, kind) for s, kind in ((11, "under"), (12, "square"), (13, "over"))]
     for cap in (1, 6, 7, 400):
         loop = jax.jit(functools.partial(f, max_iters=cap, tol=TOL, differentiable=False))
@@ -455,10 +522,10 @@ def test_while_loop_takes_the_frozen_scans_iterates(solver):
     assert int(a.iterations) < 400 and bool(a.converged)  # the last problem converged within the cap
 
 
-@pytest.mark.parametrize("solver", ["apgd", "pgs"])
+@pytest.mark.parametrize("solver", ["apgd", "pgs", "admm"])
 def test_float32_in_float32_out(solver):
     W, q, mu, mask = _separated_problem()
-    f = {"apgd": solve_apgd, "pgs": solve_pgs}[solver]
+    f = {"apgd": solve_apgd, "pgs": solve_pgs, "admm": solve_admm}[solver]
     fn = jax.jit(functools.partial(f, max_iters=500, tol=1e-5))
     sol32 = fn(W.astype(np.float32), q.astype(np.float32), mu.astype(np.float32), mask)
     assert isinstance(sol32, ContactSolution)
@@ -480,6 +547,10 @@ def test_warm_start_from_solution_takes_no_iterations():
     g0 = np.asarray(sol.gamma).copy()
     g0[~mask] = 5.0
     warm = pgs(W, q, mu, mask, gamma0=g0)
+    assert np.all(np.asarray(warm.gamma)[~mask] == 0.0)
+    # ADMM: its multiplier starts at the one that makes the warm start a fixed point.
+    warm = admm(W, q, mu, mask, gamma0=g0)
+    assert int(warm.iterations) == 0 and bool(warm.converged)
     assert np.all(np.asarray(warm.gamma)[~mask] == 0.0)
 
 

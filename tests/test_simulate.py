@@ -93,6 +93,20 @@ def test_curve_phases(default_coarse):
     assert int(np.asarray(res.overflow).max()) == 0
 
 
+def test_admm_converges_where_apgd_hits_its_cap():
+    """ADMM (``contact.solver = "admm"``) at the scene's settings (≤ 500 iterations, residual
+    1e-6) against APGD solved to 1e-10 (≤ 20000 iterations): the same insertion force curve.
+    APGD at the scene's settings stops at its cap in 41 of the 117 steps (measured; RMSE 0.30 %
+    of the peak from the tight curve), ADMM in none (0.055 %); the two tight curves agree to
+    5.5e-8 of the peak."""
+    _, model, res = _run({"contact.solver": "admm"})
+    _, _, tight = _run({"contact.iterations": 20000, "contact.tolerance": 1e-10})
+    assert int(np.asarray(res.iterations).max()) < model.iterations
+    assert int(np.asarray(tight.iterations).max()) < 20000
+    F, ref = np.asarray(res.insertion_force), np.asarray(tight.insertion_force)
+    assert np.sqrt(np.mean((F - ref) ** 2)) <= 2e-3 * ref.max()
+
+
 def test_impedance_control_tracks_position_control(default_coarse):
     """A stiff virtual coupling reproduces position control; the coupling force is the haptic
     force (it balances the contact force on the light plug), and a soft coupling lags by F/k."""
