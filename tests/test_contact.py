@@ -18,9 +18,9 @@ from hypothesis.extra import numpy as hnp
 import jsnap  # noqa: F401  (enables x64)
 from jsnap._contact import (
     ContactSolution,
+    _spd_inverse,
     kkt_residual,
     kkt_terms,
-    _spd_inverse,
     project_cone,
     solve_admm,
     solve_apgd,
