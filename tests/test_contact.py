@@ -554,17 +554,20 @@ def test_warm_start_from_solution_takes_no_iterations():
     assert np.all(np.asarray(warm.gamma)[~mask] == 0.0)
 
 
-def test_gradient_through_apgd_matches_finite_differences():
-    """d(weighted forces)/dq through the unrolled, frozen scan, against central differences.
+@pytest.mark.parametrize("solver", ["apgd", "admm"])
+def test_gradient_through_the_solver_matches_finite_differences(solver):
+    """d(weighted forces)/dq through the unrolled, frozen scan (ADMM: and its inverse's sweeps),
+    against central differences of APGD's solutions.
 
     The problem has strict complementarity (separating, sticking and sliding contacts with
     margins), so the solution is smooth in q near this point.
     """
     W, q, mu, mask, _ = _exact_kkt_problem()
     w = np.random.default_rng(1).standard_normal((8, 3))
+    solve = {"apgd": solve_apgd, "admm": solve_admm}[solver]
 
     def f(q, mu):
-        return jnp.sum(solve_apgd(W, q, mu, mask, max_iters=1000, tol=1e-13).gamma * w)
+        return jnp.sum(solve(W, q, mu, mask, max_iters=1000, tol=1e-13).gamma * w)
 
     gq, gmu = jax.jit(jax.grad(f, argnums=(0, 1)))(q, mu)
     assert np.all(np.isfinite(gq)) and np.all(np.isfinite(gmu))
