@@ -19,11 +19,13 @@ with contact velocity ``u = W gamma + q``. Its KKT conditions: ``gamma_i ∈ F_i
 Solvers:
 
 - ``solve_apgd``: accelerated projected gradient (Nesterov/FISTA) with the gradient-based
-  adaptive restart of O'Donoghue & Candès, fixed step ``1/L``. The method of choice.
+  adaptive restart of O'Donoghue & Candès, fixed step ``1/L``. The default.
+- ``solve_admm``: ADMM with ``(W + ρI)⁻¹`` formed once per solve; fewer iterations than APGD on
+  the ill-conditioned line contacts of the scenes (``contact.solver = "admm"``, opt-in).
 - ``solve_pgs``: projected block Gauss–Seidel, the classic baseline. It stalls on the
   ill-conditioned symmetric squeeze (a light plug between two hooks); it is kept to show that.
 
-Both run a ``jax.lax.scan`` of static length ``max_iters`` whose carry freezes (``lax.cond``)
+All run a ``jax.lax.scan`` of static length ``max_iters`` whose carry freezes (``lax.cond``)
 once the residual reaches ``tol``: shapes and trip counts are static, so they jit, vmap and
 reverse-differentiate (no ``while_loop``). Convergence is judged by ``kkt_residual``; read its
 docstring before choosing ``tol``: on ill-conditioned problems 1e-6 is not a small force error.
@@ -59,14 +61,14 @@ _BLOCK = 16
 # stepped at 311-333 against 443-505 µs (same forces; its rollout compiles as fast).
 _UNROLL = 2
 # ADMM's penalty, relative to the mean of W's diagonal over the free components, and its
-# over-relaxation (solve_admm). Measured in float64 to the 1e-6 residual (docs/contact.md): on
+# over-relaxation (solve_admm). Measured in float64 to the 1e-6 residual (docs/contact.md). On
 # the recorded solves of three rollouts (default scene; 1344-dof reduced, default and light
 # contact) a penalty fixed relative to L did well (0.003-0.005 L: 74-185 iterations on average,
-# against APGD's 240-442) but took 500-1100 iterations on well-conditioned random problems (APGD:
-# 20-60), which want a penalty ~0.1-0.3 L. Relative to the mean diagonal (0.02-0.04 L on the
-# scenes' line contacts, 0.1-0.9 L on well-conditioned problems) one factor serves both: 0.2
-# gave 72-171 iterations on the scene solves and 48-80 on the random ones. α = 1.6 and 1.8 took
-# alike, both fewer than α = 1 (plain ADMM).
+# capped at 600) but took 500-1100 iterations on well-conditioned random problems (APGD: 20-60),
+# which want a penalty ~0.1-0.3 L. Relative to the mean diagonal (0.02-0.04 L on the scenes'
+# line contacts, 0.1-0.9 L on well-conditioned problems) one factor serves both: 0.2 gives 76-180
+# iterations on average on the scene solves (APGD 249-582) and 48-80 on the random ones. α = 1.6
+# and 1.8 took alike, both fewer than α = 1 (plain ADMM).
 _ADMM_RHO = 0.2
 _ADMM_RELAX = 1.6
 
@@ -587,8 +589,9 @@ def solve_admm(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=Fals
     curvature that a gradient step lacks: where several contacts slide along one line of a stiff
     hook W is singular and badly conditioned, and APGD needs hundreds of iterations; on the
     recorded solves of the default scene and of the reduced scenes ADMM reaches the same
-    residual in 2.3-4.5x fewer iterations (docs/contact.md). ``z`` is always on the cones; its
-    residual is ``kkt_residual``'s, with APGD's ``L``, so ``tol`` means what it means for APGD.
+    residual in 2.8-4.6x fewer iterations on average (docs/contact.md). ``z`` is always on the
+    cones; its residual is ``kkt_residual``'s, with APGD's ``L``, so ``tol`` means what it means
+    for APGD.
     The warm start sets ``z = proj(gamma0)`` and ``u = −(W z + q)/ρ``, the multiplier that
     makes ``gamma0`` a fixed point when it solves the problem.
 
