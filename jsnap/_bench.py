@@ -232,6 +232,15 @@ def _differentiation_check(d):
     )
 
 
+def _contact_solvers(d):
+    h = d["headline"]
+    return "; ".join(
+        f"{c}: ADMM ×{v['scan_speedup']:.2f} per step, {v['iterations_admm']:.0f} against "
+        f"{v['iterations_apgd']:.0f} iterations, {v['capped_admm']} against {v['capped_apgd']} steps at the cap"
+        for c, v in h.items()
+    )
+
+
 def _generic(d):
     for key in ("summary", "headline"):
         if key in d:
@@ -251,6 +260,12 @@ BENCHMARKS = [
     Bench("sdf_accuracy", "neural SDF accuracy and training time (default plug)", False, _sdf_accuracy),
     Bench("sdf_speed", "SDF query speed: neural against exact mesh", True, _sdf_speed),
     Bench("contact_squeeze", "APGD against PGS on the symmetric squeeze", True, _contact_squeeze),
+    Bench(
+        "contact_solvers",
+        "APGD against ADMM in rollouts of the reduced scene: iterations, cap, step time",
+        False,
+        _contact_solvers,
+    ),
     Bench(
         "fem_convergence",
         "cantilever tip deflection under refinement, P1/P2",

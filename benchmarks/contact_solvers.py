@@ -1,0 +1,187 @@
+"""APGD against ADMM (``contact.solver``) in whole rollouts: iterations, steps stopped at the
+cap, time per step, and the force's distance from a tightly solved rollout.
+
+    python benchmarks/contact_solvers.py
+
+The 1344-dof reduced scene (P2 1.6 mm, float32) with reduction_speed.py's ``light`` and
+``default`` contact settings, each solved by APGD and by ADMM. All four models are built and
+compiled first; then ``ROUNDS`` rounds each time every model (the median of ``REPEATS``
+rollouts in a ``lax.scan``, and one pass stepping from Python), so that the two solvers are
+measured side by side on the same machine state. Each rollout's insertion force is compared
+with the same model rolled out in float64 with APGD solved to 1e-10 (≤ 20000 iterations): the
+curve the solve converges to. Writes benchmarks/results/contact_solvers.{json,png}.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from _common import code_version, jitted_step
+
+import jsnap
+
+OUT = Path(__file__).parent / "results"
+MESH = 1.6
+CONFIGS = {
+    "light": {"contact.width_spacing": 2.0, "contact.capacity": 24, "contact.iterations": 200},
+    "default": {},
+}
+SOLVERS = ("apgd", "admm")
+TIGHT = {"contact.iterations": 20000, "contact.tolerance": 1e-10, "solver.dtype": "float64"}
+ROUNDS, REPEATS = 2, 5
+
+
+def _scene(config, changes):
+    base = {"solver.mesh_size": MESH, "solver.method": "reduced", **CONFIGS[config]}
+    return jsnap.load_scene().replace({**base, **changes})
+
+
+def _scan_seconds(model, prepared):
+    times = []
+    for _ in range(REPEATS):
+        t0 = time.perf_counter()
+        jax.block_until_ready(jsnap.rollout(model, prepared=prepared).energy)
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def _call_seconds(one, dyn, state0, controls):
+    s = state0
+    t0 = time.perf_counter()
+    for c in controls:
+        s = one(dyn, s, c)
+    jax.block_until_ready(s)
+    return time.perf_counter() - t0
+
+
+def main():
+    runs = {}
+    for config in CONFIGS:
+        ref = jsnap.rollout(jsnap.build(_scene(config, TIGHT)))
+        F_ref = np.asarray(ref.insertion_force, np.float64)
+        for solver in SOLVERS:
+            model = jsnap.build(_scene(config, {"contact.solver": solver}))
+            prepared = jsnap.prepare(model)
+            t0 = time.perf_counter()
+            res = jsnap.rollout(model, prepared=prepared)
+            jax.block_until_ready(res.energy)
+            first = time.perf_counter() - t0
+            controls = jnp.asarray(model.trajectory()[1:], model.dtype)
+            one, dyn, state0 = jitted_step(model, prepared)
+            _call_seconds(one, dyn, state0, controls)  # a whole pass: every compile happens here
+            F = np.asarray(res.insertion_force, np.float64)
+            it = np.asarray(res.iterations)
+            runs[(config, solver)] = dict(
+                model=model,
+                prepared=prepared,
+                call=(one, dyn, state0, controls),
+                row={
+                    "config": config,
+                    "solver": solver,
+                    "dof": model.n_dof,
+                    "full_dof": int(model.host.free.size),
+                    "steps": int(F.size),
+                    "first_call_seconds": first,
+                    "iterations_mean": float(it.mean()),
+                    "iterations_per_step": it.tolist(),
+                    "capped_steps": int((it >= model.iterations).sum()),
+                    "contact_steps": int((it > 0).sum()),
+                    "peak_N": float(F.max()),
+                    "ref_peak_N": float(F_ref.max()),
+                    "rmse_vs_tight_rel": float(np.sqrt(np.mean((F - F_ref) ** 2)) / F_ref.max()),
+                    "scan_us_per_step": [],
+                    "python_us_per_step": [],
+                },
+            )
+            print(config, solver, "compiled", flush=True)
+    for r in range(ROUNDS):
+        for (config, solver), run in runs.items():
+            row = run["row"]
+            row["scan_us_per_step"].append(1e6 * _scan_seconds(run["model"], run["prepared"]) / row["steps"])
+            row["python_us_per_step"].append(1e6 * _call_seconds(*run["call"]) / row["steps"])
+            print(r, config, solver, row["scan_us_per_step"][-1], row["python_us_per_step"][-1], flush=True)
+    rows = [run["row"] for run in runs.values()]
+    by = {(row["config"], row["solver"]): row for row in rows}
+    headline = {}
+    for config in CONFIGS:
+        a, d = by[(config, "apgd")], by[(config, "admm")]
+        headline[config] = {
+            "scan_speedup": float(np.median(a["scan_us_per_step"]) / np.median(d["scan_us_per_step"])),
+            "python_speedup": float(np.median(a["python_us_per_step"]) / np.median(d["python_us_per_step"])),
+            "iterations_apgd": a["iterations_mean"],
+            "iterations_admm": d["iterations_mean"],
+            "capped_apgd": a["capped_steps"],
+            "capped_admm": d["capped_steps"],
+            "contact_steps": a["contact_steps"],
+            "rmse_apgd": a["rmse_vs_tight_rel"],
+            "rmse_admm": d["rmse_vs_tight_rel"],
+        }
+    machine = f"{platform.machine()}, {platform.processor() or platform.system()}, {jax.devices()[0].platform}"
+    result = {
+        "code": code_version(),
+        "machine": machine,
+        "mesh_size": MESH,
+        "configs": CONFIGS,
+        "tight": TIGHT,
+        "rounds": ROUNDS,
+        "repeats": REPEATS,
+        "headline": headline,
+        "rows": rows,
+    }
+    OUT.mkdir(exist_ok=True)
+    (OUT / "contact_solvers.json").write_text(json.dumps(result, indent=1))
+    plot(result, OUT / "contact_solvers.png")
+    print(json.dumps(headline, indent=1))
+
+
+def plot(result, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = result["rows"]
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
+    labels, colors = [], {"apgd": "tab:blue", "admm": "tab:orange"}
+    for i, row in enumerate(rows):
+        for j, key in enumerate(("scan_us_per_step", "python_us_per_step")):
+            x = 3 * (i // 2) + (i % 2) + 0.4 * j - 0.2
+            v = row[key]
+            ax.bar(x, np.median(v), 0.4, color=colors[row["solver"]], alpha=1.0 if j == 0 else 0.5)
+            ax.plot([x] * len(v), v, "k.", ms=3)
+        labels.append((3 * (i // 2) + (i % 2), f"{row['config']}\n{row['solver']}"))
+    ax.set_xticks([p for p, _ in labels], [t for _, t in labels])
+    ax.set_ylabel("µs per step")
+    ax.set_title(
+        f"reduced {rows[0]['full_dof']}-dof scene, float32\n"
+        "solid: lax.scan rollout, pale: one Python call per step"
+    )
+    for row in rows:
+        if row["config"] == "default":
+            it = np.asarray(row["iterations_per_step"])
+            ax2.plot(
+                it,
+                color=colors[row["solver"]],
+                lw=1,
+                label=f"{row['solver']} (mean {row['iterations_mean']:.0f})",
+            )
+    cap = next(r for r in rows if r["config"] == "default")
+    ax2.axhline(np.max(cap["iterations_per_step"]), color="gray", ls=":", lw=1)
+    ax2.set_xlabel("step")
+    ax2.set_ylabel("solver iterations")
+    ax2.set_title("default contact settings: iterations per step (cap dotted)")
+    ax2.legend()
+    fig.suptitle(f"APGD against ADMM, side by side; {result['machine']}", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()
