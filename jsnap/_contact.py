@@ -401,6 +401,58 @@ def kkt_terms(W, q, mu, mask, gamma):
 # APGD
 
 
+class _Ops(NamedTuple):
+    """Component-major pieces shared by APGD and ADMM (see ``solve_apgd`` for why the iterations
+    run on (3, C) arrays: normals, t1, t2 as rows)."""
+
+    cm: object  # contact-major (3C,) -> component-major (3, C)
+    to_cm: object  # a (3C, 3C) matrix in contact-major order -> component-major order
+    mv: object  # (M, (3, C)) -> (3, C)
+    proj: object  # onto the cones, inactive slots zeroed
+    residual: object  # (g, W g) -> kkt_residual of g
+    qc: jax.Array
+    mc: jax.Array
+
+
+def _ops(c, mu, m3, qm, L, qmax, dtype) -> _Ops:
+    def cm(v):
+        return v.reshape(c, 3).T
+
+    def to_cm(M):
+        return M.reshape(c, 3, c, 3).transpose(1, 0, 3, 2).reshape(3 * c, 3 * c)
+
+    qc, mc = cm(qm), cm(m3)
+
+    def mv(M, v):
+        return (M @ v.reshape(-1)).reshape(3, c)
+
+    def proj(v):
+        return jnp.stack(_project_cone_split(v[0], v[1], v[2], mu)) * mc
+
+    def residual(g, Wg):
+        r = (g - proj(g - (Wg + qc) / L)) * mc
+        tiny = jnp.finfo(dtype).tiny
+        return jnp.max(jnp.abs(r)) / (qmax / L + jnp.max(jnp.abs(g)) + tiny)
+
+    return _Ops(cm, to_cm, mv, proj, residual, qc, mc)
+
+
+def _finish(step, init, tol, max_iters, differentiable, return_trace):
+    """Run ``step`` from ``init`` (a carry with ``best``, ``best_r``, ``it``, ``done``) as a frozen
+    scan or a while loop, and package the best iterate."""
+    if differentiable or return_trace:
+        final, trace = _frozen_scan(step, init, lambda s: s.done, lambda s: s.best_r, max_iters=max_iters)
+    else:
+        final = _while(step, init, lambda s: s.done, max_iters)
+    sol = ContactSolution(
+        gamma=final.best.T,
+        iterations=final.it,
+        residual=final.best_r,
+        converged=final.best_r <= tol,
+    )
+    return (sol, trace) if return_trace else sol
+
+
 class _APGDCarry(NamedTuple):
     x: jax.Array  # current iterate gamma_k, (3, C) component-major
     Wx: jax.Array  # W x, kept so that each iteration needs one matvec only
@@ -461,22 +513,12 @@ def solve_apgd(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=Fals
     # reductions run over two short axes, which XLA:CPU does in one kernel, where a (3C,)
     # vector longer than 32 is reduced in two. Same iterates as the contact-major form up to
     # round-off.
-    def cm(v):  # contact-major (3C,) -> component-major (3, C)
-        return v.reshape(c, 3).T
-
-    Wc = Wm.reshape(c, 3, c, 3).transpose(1, 0, 3, 2).reshape(3 * c, 3 * c)
-    qc, mc = cm(qm), cm(m3)
+    o = _ops(c, mu, m3, qm, L, qmax, dtype)
+    cm, proj, residual, qc = o.cm, o.proj, o.residual, o.qc
+    Wc = o.to_cm(Wm)
 
     def matvec(v):
-        return (Wc @ v.reshape(-1)).reshape(3, c)
-
-    def proj(v):
-        return jnp.stack(_project_cone_split(v[0], v[1], v[2], mu)) * mc
-
-    def residual(g, Wg):
-        r = (g - proj(g - (Wg + qc) / L)) * mc
-        tiny = jnp.finfo(dtype).tiny
-        return jnp.max(jnp.abs(r)) / (qmax / L + jnp.max(jnp.abs(g)) + tiny)
+        return o.mv(Wc, v)
 
     x0 = cm(_initial(gamma0, c, mu, m3, dtype))
     Wx0 = matvec(x0)
@@ -518,17 +560,7 @@ def solve_apgd(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=Fals
         )
         return new
 
-    if differentiable or return_trace:
-        final, trace = _frozen_scan(step, init, lambda s: s.done, lambda s: s.best_r, max_iters=max_iters)
-    else:
-        final = _while(step, init, lambda s: s.done, max_iters)
-    sol = ContactSolution(
-        gamma=final.best.T,
-        iterations=final.it,
-        residual=final.best_r,
-        converged=final.best_r <= tol,
-    )
-    return (sol, trace) if return_trace else sol
+    return _finish(step, init, tol, max_iters, differentiable, return_trace)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -613,27 +645,11 @@ def solve_admm(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=Fals
     rho = jnp.where(mean_diag > 0, jnp.asarray(_ADMM_RHO, dtype) * mean_diag, L)
     alpha = jnp.asarray(_ADMM_RELAX, dtype)
 
-    def cm(v):  # contact-major (3C,) -> component-major (3, C), as in solve_apgd
-        return v.reshape(c, 3).T
-
-    def to_cm(M):
-        return M.reshape(c, 3, c, 3).transpose(1, 0, 3, 2).reshape(3 * c, 3 * c)
-
+    o = _ops(c, mu, m3, qm, L, qmax, dtype)
     # Inactive rows and columns of W are zero, so W + ρI is ρ there: positive definite.
-    Ac = to_cm(_spd_inverse(Wm + rho * jnp.eye(3 * c, dtype=dtype)))
-    Wc = to_cm(Wm)
-    qc, mc = cm(qm), cm(m3)
-
-    def mv(M, v):
-        return (M @ v.reshape(-1)).reshape(3, c)
-
-    def proj(v):
-        return jnp.stack(_project_cone_split(v[0], v[1], v[2], mu)) * mc
-
-    def residual(g, Wg):
-        r = (g - proj(g - (Wg + qc) / L)) * mc
-        tiny = jnp.finfo(dtype).tiny
-        return jnp.max(jnp.abs(r)) / (qmax / L + jnp.max(jnp.abs(g)) + tiny)
+    Ac = o.to_cm(_spd_inverse(Wm + rho * jnp.eye(3 * c, dtype=dtype)))
+    Wc = o.to_cm(Wm)
+    cm, mv, proj, residual, qc, mc = o.cm, o.mv, o.proj, o.residual, o.qc, o.mc
 
     z0 = cm(_initial(gamma0, c, mu, m3, dtype))
     Wz0 = mv(Wc, z0)
@@ -666,17 +682,7 @@ def solve_admm(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=Fals
             done=jnp.minimum(r, s.best_r) <= tol,
         )
 
-    if differentiable or return_trace:
-        final, trace = _frozen_scan(step, init, lambda s: s.done, lambda s: s.best_r, max_iters=max_iters)
-    else:
-        final = _while(step, init, lambda s: s.done, max_iters)
-    sol = ContactSolution(
-        gamma=final.best.T,
-        iterations=final.it,
-        residual=final.best_r,
-        converged=final.best_r <= tol,
-    )
-    return (sol, trace) if return_trace else sol
+    return _finish(step, init, tol, max_iters, differentiable, return_trace)
 
 
 # ----------------------------------------------------------------------------------------------
