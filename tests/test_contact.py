@@ -486,18 +486,21 @@ def test_spd_inverse_against_numpy(n):
 # JAX behaviour: vmap, jit, dtypes, warm start, gradients, errors
 
 
-def test_vmap_equals_loop_and_no_recompile():
+@pytest.mark.parametrize("solver", ["apgd", "admm"])
+def test_vmap_equals_loop_and_no_recompile(solver):
     problems = [random_problem(s, 8, "under") for s in range(4)]
     W, q, mu, mask = (np.stack(a) for a in zip(*problems, strict=True))
-    batched = jax.jit(jax.vmap(functools.partial(solve_apgd, max_iters=3000, tol=TOL)))(W, q, mu, mask)
+    f, one_jit = {"apgd": (solve_apgd, _apgd_jit), "admm": (solve_admm, _admm_jit)}[solver]
+    batched = jax.jit(jax.vmap(functools.partial(f, max_iters=3000, tol=TOL)))(W, q, mu, mask)
     assert batched.gamma.shape == (4, 8, 3) and batched.iterations.shape == (4,)
+    solve_one = {"apgd": apgd, "admm": admm}[solver]
     for i, p in enumerate(problems):
-        one = apgd(*p)
+        one = solve_one(*p)
         np.testing.assert_allclose(np.asarray(batched.gamma[i]), np.asarray(one.gamma), atol=1e-12)
         assert int(batched.iterations[i]) == int(one.iterations)
-    n_compiled = _apgd_jit._cache_size()
-    apgd(*problems[1])
-    assert _apgd_jit._cache_size() == n_compiled
+    n_compiled = one_jit._cache_size()
+    solve_one(*problems[1])
+    assert one_jit._cache_size() == n_compiled
 
 
 @pytest.mark.parametrize("solver", ["apgd", "pgs", "admm"])
