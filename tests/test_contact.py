@@ -265,7 +265,14 @@ def test_apgd_satisfies_kkt(seed, C, n_kind):
 
 
 def _assert_solves(W, q, mu, mask, sol):
-    """``sol`` converged: its KKT residual (recomputed) within TOL, its forces feasible."""
+    """``sol`` converged: its KKT residual (recomputed) within TOL, its forces feasible, and the
+    separate KKT terms of the residual's order.
+
+    The natural residual bounds the other terms only up to a problem-dependent factor (Moreau:
+    ``γ·u/L = r·(γ − p°)``, with ``r`` the residual vector and ``p°`` the polar part of
+    ``γ − u/L``). Measured over 1200 random problems each (seeds 0-149 and 100000, C = 8 and 24,
+    every kind; session 16): dual ≤ 1.50 TOL for both solvers; complementarity up to 2.10 TOL
+    (APGD) and 2.27 TOL (ADMM), 1 and 3 of them above 2 TOL. Hence 3 TOL for it."""
     assert bool(sol.converged)
     gamma = np.asarray(sol.gamma)
     # Inactive slots are exactly zero, whatever W and q hold there.
@@ -276,7 +283,7 @@ def _assert_solves(W, q, mu, mask, sol):
     primal, dual, comp = terms(W, q, mu, mask, gamma)
     assert primal <= 1e-14  # iterates are projections: feasible up to round-off
     assert dual <= 2 * TOL
-    assert comp <= 2 * TOL
+    assert comp <= 3 * TOL
 
 
 @PROPS
