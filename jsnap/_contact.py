@@ -401,6 +401,16 @@ def kkt_terms(W, q, mu, mask, gamma):
 # APGD
 
 
+def _setup(W, q, mu, mask, max_iters, tol, gamma0):
+    """What every solver starts with: the shapes checked, ``_prepare``'s masked problem, ``tol``
+    in its dtype, ``L`` (``_norm_estimate``) and ``‖q‖∞``. Returns
+    ``(C, Wm, qm, mu, mask, m3, tol, L, qmax)``."""
+    W, q, mu, mask = (jnp.asarray(a) for a in (W, q, mu, mask))
+    c = _check_shapes(W, q, mu, mask, max_iters, None if gamma0 is None else jnp.asarray(gamma0))
+    Wm, qm, mu, mask, m3 = _prepare(W, q, mu, mask)
+    return c, Wm, qm, mu, mask, m3, jnp.asarray(tol, Wm.dtype), _norm_estimate(Wm), jnp.max(jnp.abs(qm))
+
+
 class _Ops(NamedTuple):
     """Component-major pieces shared by APGD and ADMM (see ``solve_apgd`` for why the iterations
     run on (3, C) arrays: normals, t1, t2 as rows)."""
@@ -499,13 +509,8 @@ def solve_apgd(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=Fals
     Returns:
         ``ContactSolution`` (and the trace if asked).
     """
-    W, q, mu, mask = (jnp.asarray(a) for a in (W, q, mu, mask))
-    c = _check_shapes(W, q, mu, mask, max_iters, None if gamma0 is None else jnp.asarray(gamma0))
-    Wm, qm, mu, mask, m3 = _prepare(W, q, mu, mask)
+    c, Wm, qm, mu, mask, m3, tol, L, qmax = _setup(W, q, mu, mask, max_iters, tol, gamma0)
     dtype = Wm.dtype
-    tol = jnp.asarray(tol, dtype)
-    L = _norm_estimate(Wm)
-    qmax = jnp.max(jnp.abs(qm))
 
     # The iteration runs on component-major (3, C) arrays (normals, t1, t2 as rows): the cone
     # projection is then elementwise on three rows, which XLA fuses into a few kernels per
@@ -630,13 +635,8 @@ def solve_admm(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=Fals
     Same loop structure (a frozen scan, or a while loop when ``differentiable=False``),
     arguments and result as ``solve_apgd``.
     """
-    W, q, mu, mask = (jnp.asarray(a) for a in (W, q, mu, mask))
-    c = _check_shapes(W, q, mu, mask, max_iters, None if gamma0 is None else jnp.asarray(gamma0))
-    Wm, qm, mu, mask, m3 = _prepare(W, q, mu, mask)
+    c, Wm, qm, mu, mask, m3, tol, L, qmax = _setup(W, q, mu, mask, max_iters, tol, gamma0)
     dtype = Wm.dtype
-    tol = jnp.asarray(tol, dtype)
-    L = _norm_estimate(Wm)
-    qmax = jnp.max(jnp.abs(qm))
     # ρ from the mean mobility of the free components (W's diagonal over active contacts' normal
     # and, with friction, tangential rows); L when there is none (then nothing moves anyway).
     diag = jnp.diagonal(Wm)
@@ -707,13 +707,8 @@ def solve_pgs(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=False
     Same scan/freeze structure, arguments and result as ``solve_apgd``; ``iterations`` counts
     sweeps, and the residual is checked after each sweep.
     """
-    W, q, mu, mask = (jnp.asarray(a) for a in (W, q, mu, mask))
-    c = _check_shapes(W, q, mu, mask, max_iters, None if gamma0 is None else jnp.asarray(gamma0))
-    Wm, qm, mu, mask, m3 = _prepare(W, q, mu, mask)
+    c, Wm, qm, mu, mask, m3, tol, L, qmax = _setup(W, q, mu, mask, max_iters, tol, gamma0)
     dtype = Wm.dtype
-    tol = jnp.asarray(tol, dtype)
-    L = _norm_estimate(Wm)
-    qmax = jnp.max(jnp.abs(qm))
 
     idx = jnp.arange(c)
     blocks = Wm.reshape(c, 3, c, 3)[idx, :, idx, :]  # (C, 3, 3) diagonal blocks
