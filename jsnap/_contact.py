@@ -398,7 +398,7 @@ def kkt_terms(W, q, mu, mask, gamma):
 
 
 # ----------------------------------------------------------------------------------------------
-# APGD
+# Pieces the iterative solvers share
 
 
 def _setup(W, q, mu, mask, max_iters, tol, gamma0):
@@ -461,6 +461,10 @@ def _finish(step, init, tol, max_iters, differentiable, return_trace):
         converged=final.best_r <= tol,
     )
     return (sol, trace) if return_trace else sol
+
+
+# ----------------------------------------------------------------------------------------------
+# APGD
 
 
 class _APGDCarry(NamedTuple):
