@@ -161,30 +161,60 @@ def system_data(blocks: SparseBlocks, mat: Material):
 
 # Below this order the dense inverse stays in XLA: the host call's overhead is not worth it.
 _HOST_INVERSE_MIN = 512
+# Rows per block when the host route symmetrises S and mirrors the inverse: a whole-matrix
+# transpose strides over memory (XLA's on the default mesh's order 5742: 0.5-1.0 s for the mirror,
+# 0.3-0.7 s for the symmetric part; by blocks of rows in NumPy ~0.07 s each).
+_BLOCK = 512
+
+
+def _symmetrise_upper(a):
+    """In place, by blocks of rows: the upper triangle of ``a`` becomes that of ``(a + a')/2``
+    (bit for bit XLA's ``0.5 * (S + S.T)``); the strict lower one is left as it was."""
+    n = a.shape[0]
+    for i in range(0, n, _BLOCK):
+        j = min(i + _BLOCK, n)
+        d = a[i:j, i:j]
+        d[...] = 0.5 * (d + d.T)
+        a[i:j, j:] = 0.5 * (a[i:j, j:] + a[j:, i:j].T)
+
+
+def _mirror_upper(a):
+    """In place: the strict lower triangle from the upper one, by blocks of rows."""
+    n = a.shape[0]
+    for i in range(0, n, _BLOCK):
+        j = min(i + _BLOCK, n)
+        d = a[i:j, i:j]
+        d[...] = np.triu(d) + np.triu(d, 1).T
+        a[j:, i:j] = a[i:j, j:].T
 
 
 def _host_spd_inverse(S):
     """LAPACK potrf + potri on the host (scipy's LAPACK, the one XLA:CPU calls as well): n^3
     flops, against 7n^3/3 for a Cholesky followed by two triangular solves with n right-hand
-    sides, which is how XLA inverts. 5742 dof, 2 cores: 3.1 s against 5.0 s. A matrix that is
-    not positive definite gives NaN, as ``jnp.linalg.cholesky`` does."""
+    sides, which is how XLA inverts. 5742 dof, 2 cores: 3.1 s against 5.0 s. LAPACK works in
+    place on the transposed (column-major) view of one copy of S, symmetrised and mirrored there
+    by blocks (``_BLOCK``). A matrix that is not positive definite gives NaN, as
+    ``jnp.linalg.cholesky`` does."""
 
-    def host(a):
-        a = np.asarray(a)
-        potrf, potri = sla.get_lapack_funcs(("potrf", "potri"), (a,))
-        c, info = potrf(a, lower=True, clean=False)
+    def host(s):
+        a = np.array(s, order="C")  # the callback's buffer is read-only: one copy, worked in place
+        _symmetrise_upper(a)
+        f = a.T  # column-major: LAPACK takes it without a copy; its lower triangle is a's upper
+        potrf, potri = sla.get_lapack_funcs(("potrf", "potri"), (f,))
+        c, info = potrf(f, lower=True, overwrite_a=True, clean=False)
         if info == 0:
             c, info = potri(c, lower=True, overwrite_c=True)
         if info != 0:
             return np.full(a.shape, np.nan, a.dtype)
-        return c
+        out = c.T  # row-major again; potri filled the upper triangle (in this view) only
+        _mirror_upper(out)
+        return out
 
-    L = jax.pure_callback(host, jax.ShapeDtypeStruct(S.shape, S.dtype), S, vmap_method="sequential")
-    L = jnp.tril(L)  # potri fills the lower triangle only
-    return L + jnp.tril(L, -1).T
+    return jax.pure_callback(host, jax.ShapeDtypeStruct(S.shape, S.dtype), S, vmap_method="sequential")
 
 
 def _xla_spd_inverse(S):
+    S = 0.5 * (S + S.T)
     chol = jnp.linalg.cholesky(S)
     S_inv = jax.scipy.linalg.cho_solve((chol, True), jnp.eye(S.shape[0], dtype=S.dtype))
     return 0.5 * (S_inv + S_inv.T)
@@ -192,10 +222,10 @@ def _xla_spd_inverse(S):
 
 @jax.custom_jvp
 def spd_inverse(S):
-    """Inverse of the symmetric positive definite ``S`` (only its lower triangle is read on the
-    CPU), symmetric to the last bit. On the CPU, from order ``_HOST_INVERSE_MIN`` up, by LAPACK's
+    """Inverse of the symmetric part ``(S + S')/2`` of ``S``, which must be positive definite;
+    symmetric to the last bit. On the CPU, from order ``_HOST_INVERSE_MIN`` up, by LAPACK's
     potri (2.3x fewer flops than XLA's route); elsewhere by XLA's Cholesky. Differentiable:
-    ``d(S^-1) = -S^-1 dS S^-1``; batches under ``vmap`` one matrix at a time."""
+    ``d(S^-1) = -S^-1 sym(dS) S^-1``; batches under ``vmap`` one matrix at a time."""
     if S.shape[-1] < _HOST_INVERSE_MIN:
         return _xla_spd_inverse(S)
     return jax.lax.platform_dependent(S, cpu=_host_spd_inverse, default=_xla_spd_inverse)
@@ -205,7 +235,7 @@ def spd_inverse(S):
 def _spd_inverse_jvp(primals, tangents):
     (S,), (dS,) = primals, tangents
     X = spd_inverse(S)
-    return X, -X @ dS @ X
+    return X, -X @ (0.5 * (dS + dS.T)) @ X
 
 
 def pmi_operator(blocks: SparseBlocks, mat: Material, dt) -> PMIOperator:
@@ -217,7 +247,7 @@ def pmi_operator(blocks: SparseBlocks, mat: Material, dt) -> PMIOperator:
     dt = jnp.asarray(dt, jnp.float64)
     k, m, d = system_data(blocks, mat)
     S = blocks.dense(2.0 * m / dt + d + 0.5 * dt * k)
-    return PMIOperator(spd_inverse(0.5 * (S + S.T)), k, m, d, dt)
+    return PMIOperator(spd_inverse(S), k, m, d, dt)
 
 
 def pmi_rhs(blocks: SparseBlocks, op: PMIOperator, x, v, f):

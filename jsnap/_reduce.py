@@ -710,7 +710,7 @@ class ReducedSocket(eqx.Module):
         S_el = 2.0 * M / dt + material.alpha * M + material.beta * K_el + 0.5 * dt * K_el
         sc = bc + 0.5 * dt * kc
         S = S_el + sc * (Dg.T @ Dg)
-        S_inv = spd_inverse(0.5 * (S + S.T))
+        S_inv = spd_inverse(S)
         NS = jnp.einsum("cdr,rs->cds", self.node_rows, S_inv)
         return ReducedOperator(S_inv, S_el, (2.0 / dt) * M, K_el, M, kc, sc, NS, dt)
 

@@ -98,18 +98,24 @@ def test_vmap_equals_loop_and_no_recompile(small_arm):
 @pytest.mark.parametrize("host", [True, False])
 def test_spd_inverse(monkeypatch, host):
     """Both routes of ``spd_inverse`` (LAPACK potri on the host, XLA's Cholesky) against
-    scipy's general inverse, exactly symmetric, its derivative against central differences,
-    batched under vmap, and NaN (not a wrong answer) for a matrix that is not positive definite."""
+    scipy's general inverse of the matrix's symmetric part, exactly symmetric, its derivative
+    (along a direction that is not symmetric) against central differences, batched under vmap,
+    and NaN (not a wrong answer) for a matrix that is not positive definite. The order is not a
+    multiple of the host route's block, so its blocked symmetrise and mirror meet a ragged edge."""
     monkeypatch.setattr(I, "_HOST_INVERSE_MIN", 0 if host else 10**9)
+    monkeypatch.setattr(I, "_BLOCK", 32)
     rng = np.random.default_rng(3)
     n = 120
     A = rng.standard_normal((n, n))
     S = A @ A.T / n + np.eye(n)
-    X = np.asarray(jax.jit(I.spd_inverse)(jnp.asarray(S)))
+    skew = rng.standard_normal((n, n))
+    B = S + 0.1 * (skew - skew.T)  # symmetric part S (up to the rounding of the sum)
+    X = np.asarray(jax.jit(I.spd_inverse)(jnp.asarray(B)))
     np.testing.assert_allclose(X, sl.inv(S), rtol=0, atol=1e-12 * np.abs(X).max())
     assert np.array_equal(X, X.T)
+    # The symmetric part formed in NumPy gives the same inverse to the last bit.
+    assert np.array_equal(X, np.asarray(jax.jit(I.spd_inverse)(jnp.asarray(0.5 * (B + B.T)))))
     dS = rng.standard_normal((n, n))
-    dS = dS + dS.T
     W = rng.standard_normal((n, n))
 
     def f(S):
