@@ -463,16 +463,12 @@ def _times_line(root: Path, quick: bool) -> str | None:
 # with both (session 9). The full runs, whose timings are the headline numbers, keep XLA's
 # defaults.
 QUICK_XLA_FLAGS = "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=1"
-# A full run's untimed scripts (accuracy only, whose run times are not results) compile with LLVM
-# at -O1 as well, not with the older emitters (they run the large models slower): design_guide
-# 109 -> 100 s, its float64 results the same to 1e-11 (session 17).
-UNTIMED_XLA_FLAGS = "--xla_backend_optimization_level=1"
 
 
-def quick_xla_flags(user: str, flags: str = QUICK_XLA_FLAGS) -> str:
-    """``XLA_FLAGS`` for the quick runs (or the given ``flags``' runs): the user's flags, then
-    each of ``flags`` that the user has not set (the user's own setting of a flag wins)."""
-    extra = [f for f in flags.split() if f.split("=")[0] not in user]
+def quick_xla_flags(user: str) -> str:
+    """``XLA_FLAGS`` for the quick runs: the user's flags, then each of ``QUICK_XLA_FLAGS``
+    that the user has not set (the user's own setting of a flag wins)."""
+    extra = [f for f in QUICK_XLA_FLAGS.split() if f.split("=")[0] not in user]
     return " ".join([user.strip(), *extra]).strip()
 
 
@@ -569,15 +565,14 @@ def _run_full(root: Path, todo: list[Bench], jobs: int) -> tuple[dict, dict]:
     untimed = _longest_first(root, [b for b in todo if not b.timed], quick=False)
     times = {}
     t0 = time.perf_counter()
-    flags = quick_xla_flags(os.environ.get("XLA_FLAGS", ""), UNTIMED_XLA_FLAGS)
-    with _script_env(XLA_FLAGS=flags), ThreadPoolExecutor(max_workers=jobs) as pool:
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
         for b, entry in zip(untimed, pool.map(lambda b: _run_script(root, b), untimed), strict=True):
             times[b.name] = {**entry, "timed": False}
     untimed_wall = time.perf_counter() - t0
     for b in todo:
         if b.timed:
             times[b.name] = {**_run_script(root, b), "timed": True}
-    how = {"untimed_workers": jobs, "untimed_seconds": round(untimed_wall, 1), "untimed_xla_flags": flags}
+    how = {"untimed_workers": jobs, "untimed_seconds": round(untimed_wall, 1)}
     return {b.name: times[b.name] for b in todo}, how
 
 
