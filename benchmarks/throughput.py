@@ -2,7 +2,7 @@
 that differ in Young's modulus, friction and the plug's lateral offset, in scene-steps per
 second against the batch size.
 
-    python benchmarks/throughput.py [--quick] [--steps 20] [--max-batch 512]
+    python benchmarks/throughput.py [--quick] [--admm] [--steps 20] [--max-batch 512]
 
 The model is the paper's Model 4 on the ~1300-dof mesh of ``benchmarks/frequency.py``: the
 default scene with P2 elements at ``solver.mesh_size`` 1.7 mm (1218 free dofs), segmented and
@@ -31,6 +31,10 @@ until ``--max-batch`` (every 4x), until a 4x larger batch gains less than 5 % (s
 from a batch of 16 on), or until a call would take more than ``--max-call`` seconds. CPU numbers and GPU
 numbers are kept apart (``results[platform]``); a run on one platform keeps the other's, and
 the top-level ``headline`` is the CPU one (a GPU's is also ``headline_gpu``).
+``--admm`` (not run by ``jsnap bench``): a third series with ``contact.solver = "admm"``
+(500 iterations), side by side with the two APGD ones in the same run; its while loop runs to
+the slowest lane as APGD's does, and its slowest lanes take fewer iterations (docs/contact.md).
+Writes ``throughput_admm.{json,png}``.
 ``--quick`` (CI): batches 1 and 4, 10 steps, the default series only, no saturation check.
 Writes benchmarks/results/throughput{,_quick}.{json,png}.
 """
@@ -65,6 +69,7 @@ NOTE = (
     "The single_scene row is one scene jitted without vmap (early exit working)."
 )
 SERIES = {"default (500 iterations)": {}, "contact.iterations = 100": {"contact.iterations": 100}}
+ADMM_SERIES = {"ADMM (500 iterations)": {"contact.solver": "admm"}}
 E_RANGE, MU_RANGE, OFFSET_RANGE = (1800.0, 2600.0), (0.1, 0.5), (-0.4, 0.4)  # MPa, -, mm
 
 
@@ -204,7 +209,7 @@ def chart(result, title, path):
     import matplotlib.pyplot as plt
 
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(13, 4.8))
-    for (name, rows), color in zip(result["series"].items(), ("C0", "C1"), strict=False):
+    for (name, rows), color in zip(result["series"].items(), ("C0", "C1", "C3"), strict=False):
         B = [r["batch"] for r in rows]
         ax.loglog(B, [r["scene_steps_per_second"] for r in rows], "o-", color=color, label=f"vmap, {name}")
         bx.semilogx(B, [r["compile_seconds"] for r in rows], "o-", color=color, label=name)
@@ -229,13 +234,23 @@ def chart(result, title, path):
     plt.close(fig)
 
 
+def _lane0_rmse(rows, ref_rows) -> float:
+    """RMSE of lane 0's insertion force (batch 1) against the reference series', over its peak."""
+    F = np.asarray(rows[0]["insertion_force_lane0"])
+    F0 = np.asarray(ref_rows[0]["insertion_force_lane0"])
+    return float(np.sqrt(np.mean((F - F0) ** 2)) / max(np.abs(F0).max(), 1e-12))
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="batches 1 and 4, 10 steps, default series only")
     ap.add_argument("--steps", type=int, default=20, help="steps of the motion per rollout")
     ap.add_argument("--max-batch", type=int, default=POOL)
     ap.add_argument("--max-call", type=float, default=30.0, help="seconds a timed call may take")
+    ap.add_argument("--admm", action="store_true", help="a third series with the ADMM contact solver")
     a = ap.parse_args(argv)
+    if a.quick and a.admm:
+        ap.error("--admm is a full run's extra series; it has no quick variant")
     t_start = time.perf_counter()
     code = code_version()  # the code as imported, before anyone commits during the run
     n_steps = 10 if a.quick else a.steps
@@ -244,7 +259,7 @@ def main(argv=None):
     else:
         # Every 4x (each batch size is a compile): the 30-minute budget of `jsnap bench`.
         batches = [4**k for k in range(10) if 4**k <= min(a.max_batch, POOL)]
-        series = SERIES
+        series = {**SERIES, **(ADMM_SERIES if a.admm else {})}
     load = [os.getloadavg()[0]]
     result = {"series": {}}
     for name, changes in series.items():
@@ -283,15 +298,29 @@ def main(argv=None):
         headline["iterations_100_best_batch"] = best_alt["batch"]
         headline["iterations_100_best_scene_steps_per_second"] = best_alt["scene_steps_per_second"]
         # What the lower cap costs in accuracy on lane 0 (same parameters in both series).
-        F0 = np.asarray(main_rows[0]["insertion_force_lane0"])
-        F1 = np.asarray(alt[0]["insertion_force_lane0"])
-        headline["iterations_100_force_rmse_rel_peak_lane0"] = float(
-            np.sqrt(np.mean((F1 - F0) ** 2)) / max(np.abs(F0).max(), 1e-12)
+        headline["iterations_100_force_rmse_rel_peak_lane0"] = _lane0_rmse(alt, main_rows)
+    if a.admm:
+        name = next(iter(ADMM_SERIES))
+        rows = result["series"][name]
+        best_admm = max(rows, key=lambda r: r["scene_steps_per_second"])
+        headline.update(
+            admm_batch_1_scene_steps_per_second=rows[0]["scene_steps_per_second"],
+            admm_best_batch=best_admm["batch"],
+            admm_best_scene_steps_per_second=best_admm["scene_steps_per_second"],
+            admm_iterations_mean_at_best=best_admm["iterations_mean"],
+            apgd_iterations_mean_at_best=best["iterations_mean"],
+            admm_force_rmse_rel_peak_lane0=_lane0_rmse(rows, main_rows),
         )
+        common = {r["batch"]: r for r in main_rows}
+        headline["admm_speedup_by_batch"] = {
+            str(r["batch"]): r["scene_steps_per_second"] / common[r["batch"]]["scene_steps_per_second"]
+            for r in rows
+            if r["batch"] in common
+        }
     result["headline"] = headline
     result["wall_seconds"] = time.perf_counter() - t_start
 
-    stem = "throughput_quick" if a.quick else "throughput"
+    stem = "throughput_quick" if a.quick else "throughput_admm" if a.admm else "throughput"
     OUT.mkdir(exist_ok=True)
     path = OUT / f"{stem}.json"
     results = {}

@@ -576,16 +576,14 @@ def solve_apgd(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=Fals
 # ADMM
 
 
-def _spd_inverse(A):
-    """Inverse of a symmetric positive definite matrix by Gauss–Jordan sweeps (no pivoting: the
-    pivots of an SPD matrix are its Schur complements' diagonals, ≥ its smallest eigenvalue).
+# Largest order inverted by Gauss-Jordan sweeps; above it ``_spd_inverse`` splits the matrix in two.
+_SWEEP_MAX = 48
 
-    A ``fori_loop`` of one rank-1 update per row, in plain XLA operations. LAPACK's Cholesky
-    (``jax.scipy.linalg.cho_factor``/``cho_solve``) gave the same ADMM iterates, but inside the
-    rollout's ``scan`` its calls cost ~200 µs per step on the 1344-dof reduced scene with light
-    contact settings (659 against 449 µs per step, 100 iterations per solve; in isolation both
-    take ~15-20 µs for a 36 x 36 matrix).
-    """
+
+def _gauss_jordan_inverse(A):
+    """Inverse of an SPD matrix by Gauss–Jordan sweeps (no pivoting: the pivots of an SPD matrix
+    are its Schur complements' diagonals, ≥ its smallest eigenvalue): a ``fori_loop`` of one
+    rank-1 update per row, in plain XLA operations."""
     n = A.shape[0]
     idx = jnp.arange(n)
 
@@ -600,6 +598,38 @@ def _spd_inverse(A):
         return jnp.where(ek[:, None] & ek[None, :], -1.0 / d, B)
 
     return -jax.lax.fori_loop(0, n, sweep, A)
+
+
+def _spd_inverse(A):
+    """Inverse of a symmetric positive definite matrix, in plain XLA operations.
+
+    Up to order ``_SWEEP_MAX`` by Gauss–Jordan sweeps in a ``fori_loop``; above it by blocks,
+    recursively: with ``A = [[P, Q], [Q', R]]``, ``T = P⁻¹Q`` and the Schur complement
+    ``Z = R − Q'T`` (SPD), ``A⁻¹ = [[P⁻¹ + T Z⁻¹ T', −T Z⁻¹], [−Z⁻¹ T', Z⁻¹]]`` in matrix
+    products. A sweep is n² elementwise work, cheap as a loop's few fused operations while the
+    matrix is small; under ``vmap`` the size switch (``_sim._solve``) and the predict-correct
+    pass run the whole buffer's problem in every step, and 192 sweeps of the default 64 slots'
+    192 x 192 matrix made batched ADMM rollouts 4.4x slower than with the blocks (31 against 137
+    scene-steps/s at batch 1; benchmarks/throughput.py --admm). Blocks all the way down to
+    unrolled 6 x 6 sweeps ran no faster in a single scene and doubled the rollout's compile time
+    (16.9 against 7.6 s, the 1344-dof reduced scene, default contact).
+    LAPACK's Cholesky (``jax.scipy.linalg.cho_factor``/``cho_solve``) gave the same ADMM
+    iterates, but inside the rollout's ``scan`` its calls cost ~200 µs per step on the 1344-dof
+    reduced scene with light contact settings (659 against 449 µs per step, 100 iterations per
+    solve; in isolation both take ~15-20 µs for a 36 x 36 matrix).
+    """
+    n = A.shape[0]
+    if n <= _SWEEP_MAX:
+        return _gauss_jordan_inverse(A)
+    h = n // 2
+    P, Q, R = A[:h, :h], A[:h, h:], A[h:, h:]
+    Pi = _spd_inverse(P)
+    T = Pi @ Q
+    Z = R - Q.T @ T
+    Zi = _spd_inverse(0.5 * (Z + Z.T))
+    U = -T @ Zi
+    top = Pi - U @ T.T
+    return jnp.block([[0.5 * (top + top.T), U], [U.T, Zi]])
 
 
 class _ADMMCarry(NamedTuple):
