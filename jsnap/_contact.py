@@ -447,6 +447,18 @@ def _ops(c, mu, m3, qm, L, qmax, dtype) -> _Ops:
     return _Ops(cm, to_cm, mv, proj, residual, qc, mc)
 
 
+def _best_so_far(s, x, r, tol) -> dict:
+    """The carry fields ``best``, ``best_r``, ``it`` and ``done`` after an iteration that reached
+    ``x`` with residual ``r`` (the solvers return the best iterate, not the last)."""
+    better = r < s.best_r
+    return dict(
+        best=jnp.where(better, x, s.best),
+        best_r=jnp.where(better, r, s.best_r),
+        it=s.it + 1,
+        done=jnp.minimum(r, s.best_r) <= tol,
+    )
+
+
 def _finish(step, init, tol, max_iters, differentiable, return_trace):
     """Run ``step`` from ``init`` (a carry with ``best``, ``best_r``, ``it``, ``done``) as a frozen
     scan or a while loop, and package the best iterate."""
@@ -555,19 +567,9 @@ def solve_apgd(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=Fals
         # W y by linearity, exact up to round-off: no second matvec.
         Wy_new = jnp.where(restart, Wx_new, Wx_new + beta * (Wx_new - s.Wx))
         theta_new = jnp.where(restart, jnp.asarray(1.0, dtype), theta_new)
-        better = r_new < s.best_r
-        new = _APGDCarry(
-            x=x_new,
-            Wx=Wx_new,
-            y=y_new,
-            Wy=Wy_new,
-            theta=theta_new,
-            best=jnp.where(better, x_new, s.best),
-            best_r=jnp.where(better, r_new, s.best_r),
-            it=s.it + 1,
-            done=jnp.minimum(r_new, s.best_r) <= tol,
+        return _APGDCarry(
+            x=x_new, Wx=Wx_new, y=y_new, Wy=Wy_new, theta=theta_new, **_best_so_far(s, x_new, r_new, tol)
         )
-        return new
 
     return _finish(step, init, tol, max_iters, differentiable, return_trace)
 
@@ -705,16 +707,7 @@ def solve_admm(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=Fals
 
     def step(s):
         z, u = update(s.z, s.u)
-        r = residual(z, mv(Wc, z))
-        better = r < s.best_r
-        return _ADMMCarry(
-            z=z,
-            u=u,
-            best=jnp.where(better, z, s.best),
-            best_r=jnp.where(better, r, s.best_r),
-            it=s.it + 1,
-            done=jnp.minimum(r, s.best_r) <= tol,
-        )
+        return _ADMMCarry(z=z, u=u, **_best_so_far(s, z, residual(z, mv(Wc, z)), tol))
 
     return _finish(step, init, tol, max_iters, differentiable, return_trace)
 
