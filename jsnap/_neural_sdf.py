@@ -179,9 +179,32 @@ class NeuralSDFConfig:
         )
 
 
+@partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _softplus(beta: float, x):
+    """``softplus(β x) / β``, the value of ``jax.nn.softplus`` (``logaddexp(β x, 0)``) bit for
+    bit, with a derivative that reuses the value's ``exp``. ``jax.nn.softplus``'s derivative
+    (``logaddexp``'s) takes a second ``exp``; the network evaluates one of these per hidden unit
+    for the value and the normal of every query point, and the transcendentals are most of
+    that cost: this one made the value + normal of 1024 points 1.27x faster (float32) and 1.29x
+    (float64) side by side (session 18). Its own derivative (needed where a rollout's gradient
+    goes through the contact normals) is JAX's derivative of the rule below."""
+    z = beta * x
+    return (jnp.maximum(z, 0) + jnp.log1p(jnp.exp(-jnp.abs(z)))) / beta
+
+
+@_softplus.defjvp
+def _softplus_jvp(beta, primals, tangents):
+    (x,), (dx,) = primals, tangents
+    z = beta * x
+    e = jnp.exp(-jnp.abs(z))
+    # sigmoid(z) = 1 / (1 + e^-z), written with e = e^-|z| <= 1 so that nothing overflows
+    slope = jnp.where(z >= 0, 1.0, e) / (1.0 + e)
+    return (jnp.maximum(z, 0) + jnp.log1p(e)) / beta, slope * dx
+
+
 def _activation(name: str, beta: float):
     if name == "softplus":
-        return lambda x: jax.nn.softplus(beta * x) / beta
+        return partial(_softplus, beta)
     return {"silu": jax.nn.silu, "gelu": jax.nn.gelu, "tanh": jnp.tanh}[name]
 
 
