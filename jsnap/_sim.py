@@ -17,6 +17,7 @@ Units: mm, N, MPa, s, tonne. Forces: ``Gamma`` is the force of the plug on the s
 from __future__ import annotations
 
 import math
+from functools import partial
 
 import equinox as eqx
 import jax
@@ -32,16 +33,21 @@ from jsnap._util import safe_norm
 
 __all__ = ["Prepared", "Result", "State", "init_state", "prepare", "rollout", "step"]
 
-# Points at which the exact triangle-mesh SDF and the neural SDF are evaluated per query (the
-# nearest to the plug's bounding box; see _plug_sdf).
+# Points at which the exact triangle-mesh SDF and the neural SDF are evaluated per query, at
+# most (the nearest to the plug by a box's distance; see _near_plug_sdf).
 _MESH_SDF_POINTS = 384
-# Block of points of the exact mesh SDF's query (see _mesh_plug_sdf): the points near the plug
-# number ~30 at the median and ~120 at the 99th percentile of the default scene's steps (1165
-# queries counted), so one block serves nearly every step.
+# Block of points of those queries (see _near_plug_sdf): the points near the plug number ~30 at
+# the median and ~120 at the 99th percentile of the default scene's steps (1165 queries
+# counted), so one block serves nearly every step.
 _MESH_SDF_FEW = 128
 # Slack on the margin for the points that must be exact: covers the float32 rounding of the
 # mesh's vertices off the rounded box (~1e-7 of the plug's size), with room to spare.
 _NEAR_SLACK = 1e-3
+# The same for the neural SDF, whose lower bound is the plug's bounding box: the network may
+# read below it by its own error (default plug: 1.3 µm mean, 46 µm at most within 0.2 mm of
+# the surface, benchmarks/sdf_accuracy.py), so points up to 50 µm past the margin get the
+# network too (70 of 1055 at the median step of the default scene, 160-360 near the snap).
+_NEURAL_NEAR_SLACK = 5e-2
 # Fractions of a step's straight-line motion at which the predict-correct collision check looks.
 _PATH_CHECKS = (0.25, 0.5, 0.75, 1.0)
 
@@ -162,47 +168,47 @@ def init_state(model: Model, dtype=None) -> State:
 def _plug_sdf(model: Model, q):
     """Signed distance (P,) and outward normal (P, 3) of the plug at points q (P, 3), plug frame."""
     if model.sdf == "mesh":
-        return _mesh_plug_sdf(model, q)
+        exact = partial(mesh_sdf_and_normal, model.mesh_sdf)
+        return _near_plug_sdf(model, q, exact, model.plug_radius, _NEAR_SLACK)
     if model.sdf == "neural":
-        if q.shape[0] <= _MESH_SDF_POINTS:
-            return neural_sdf_and_normal(model.neural_sdf, q)
-        # Broad phase: the network is evaluated only at the points nearest the plug's bounding
-        # box; the others get the box distance, a lower bound of the plug's.
-        lower, box_normal = rounded_box_sdf_and_normal(q, model.plug_half, 0.0)
-        _, near = jax.lax.top_k(-lower, _MESH_SDF_POINTS)
-        phi, normal = neural_sdf_and_normal(model.neural_sdf, q[near])
-        return lower.at[near].set(phi), box_normal.at[near].set(normal)
+        exact = partial(neural_sdf_and_normal, model.neural_sdf)
+        return _near_plug_sdf(model, q, exact, 0.0, _NEURAL_NEAR_SLACK)
     return rounded_box_sdf_and_normal(q, model.plug_half, model.plug_radius)
 
 
-def _mesh_plug_sdf(model: Model, q):
-    """The exact triangle-mesh distance where the contact needs it, a lower bound elsewhere.
+def _near_plug_sdf(model: Model, q, exact, radius, slack):
+    """A costly SDF ``exact`` (the triangle mesh's, the network's) where the contact needs it, a
+    lower bound elsewhere.
 
-    The plug's mesh is inscribed in the analytic rounded box (its vertices lie on it), so the
-    rounded box's distance is a lower bound of the mesh's, inside and out. A point whose bound is
-    at least the margin (plus ``_NEAR_SLACK``) is no contact candidate whatever its exact
-    distance, and keeps the bound; the brute-force mesh distance is evaluated at the points with
-    the lowest bounds, in blocks of ``_MESH_SDF_FEW``: as many blocks as the points below the
-    margin need (one on nearly every step), up to ``_MESH_SDF_POINTS`` points. Every contact
-    decision (candidates, predict-correct) is the one the exact distance at every point would
-    give, as long as at most ``_MESH_SDF_POINTS`` points lie within the margin. The blocks are a
-    scan over one compiled copy of the search (each skipped by a ``cond`` when not needed; under
-    ``vmap`` every block is evaluated).
+    The lower bound is the distance to the rounded box of half extents ``model.plug_half`` and
+    fillet ``radius``: the plug's mesh is inscribed in the analytic rounded box (its vertices lie
+    on it), so that box's distance is a lower bound of the mesh's, inside and out; for the
+    network, trained on the mesh, the bound is the plain bounding box (``radius`` 0), up to the
+    network's error. A point whose bound is at least the margin plus ``slack`` is no contact
+    candidate whatever its exact distance, and keeps the bound; ``exact`` is evaluated at the
+    points with the lowest bounds, in blocks of ``_MESH_SDF_FEW``: as many blocks as the points
+    below the margin plus ``slack`` need (one on most steps), up to ``_MESH_SDF_POINTS`` points.
+    Every contact decision (candidates, predict-correct) is the one the exact distance at every
+    point would give, as long as at most ``_MESH_SDF_POINTS`` points lie within the margin. The
+    blocks are a scan over one compiled copy of the search (each skipped by a ``cond`` when not
+    needed; under ``vmap`` every block is evaluated). The network at the 384 nearest points on
+    every query instead (sessions 3-17) made neural-SDF rollouts 1.2-1.4x slower, with the same
+    forces bit for bit (docs/neural_sdf.md).
     """
     n = q.shape[0]
     if n <= _MESH_SDF_FEW:
-        return mesh_sdf_and_normal(model.mesh_sdf, q)
-    lower, lower_normal = rounded_box_sdf_and_normal(q, model.plug_half, model.plug_radius)
+        return exact(q)
+    lower, lower_normal = rounded_box_sdf_and_normal(q, model.plug_half, radius)
     n_blocks = -(-min(n, _MESH_SDF_POINTS) // _MESH_SDF_FEW)
     # Lowest bounds first; with fewer points than the blocks hold, the last block overlaps the one
     # before (dynamic_slice keeps it in range), evaluating some points twice.
     _, order = jax.lax.top_k(-lower, min(n, n_blocks * _MESH_SDF_FEW))
-    n_near = jnp.sum(lower < model.margin + _NEAR_SLACK)
+    n_near = jnp.sum(lower < model.margin + slack)
 
     def block(carry, k):
         def evaluate(c):
             near = jax.lax.dynamic_slice_in_dim(order, k * _MESH_SDF_FEW, _MESH_SDF_FEW)
-            phi, normal = mesh_sdf_and_normal(model.mesh_sdf, q[near])
+            phi, normal = exact(q[near])
             return c[0].at[near].set(phi), c[1].at[near].set(normal)
 
         # Block 0 always; a later one only when the points below the margin reach into it.

@@ -436,6 +436,46 @@ def test_scene_with_neural_sdf_builds_and_dispatches(tmp_path, monkeypatch):
     assert _plug_sdf(eqx_replace(model, cast), q.astype(jnp.float32))[0].dtype == jnp.float32
 
 
+@pytest.mark.parametrize("n_contact", [40, 300])
+def test_step_query_is_the_network_where_contact_needs_it(mesh, trained, n_contact):
+    """The step's neural query (``_sim._plug_sdf``: the network at the points nearest the
+    plug's box, in blocks of ``_MESH_SDF_FEW``, the box's distance elsewhere) against the network
+    at every point: the same values and normals wherever a contact decision needs them (below
+    the margin), the same decisions everywhere, with one block (40 near points) and several
+    (300), under ``vmap`` (every block evaluated) and with fewer points than the blocks hold."""
+    from types import SimpleNamespace
+
+    from jsnap import _sim
+
+    net = trained[0].astype(jnp.float64)
+    margin = 0.02
+    rng = np.random.default_rng(12)
+    surf, face = trimesh.sample.sample_surface(mesh, n_contact, seed=5)
+    near = surf + mesh.face_normals[face] * rng.uniform(-margin, margin, (n_contact, 1))
+    # Others that are no candidates: off the surface by 0.1-0.6 mm, and far.
+    surf, face = trimesh.sample.sample_surface(mesh, 500, seed=6)
+    off = surf + mesh.face_normals[face] * rng.uniform(0.1, 0.6, (500, 1))
+    far = rng.uniform(-3, 3, (200, 3))
+    q = jnp.asarray(rng.permutation(np.concatenate([near, off, far])))
+    model = SimpleNamespace(sdf="neural", neural_sdf=net, plug_half=jnp.asarray(HALF), margin=margin)
+    query = jax.jit(lambda q: _sim._plug_sdf(model, q))
+    ref, ref_n = nsdf.neural_sdf_and_normal(net, q)
+    need = np.asarray(ref < margin)
+    assert np.sum(need) >= 0.9 * n_contact
+    assert (np.sum(need) <= _sim._MESH_SDF_FEW) == (n_contact == 40)
+    for phi, n in (query(q), [a[0] for a in jax.vmap(query)(q[None])]):
+        np.testing.assert_allclose(phi[need], ref[need], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(n[need], ref_n[need], rtol=0, atol=1e-10)
+        np.testing.assert_array_equal(phi < margin, need)
+        np.testing.assert_array_equal(phi < -0.5 * margin, ref < -0.5 * margin)
+        np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-12)
+    # Fewer points than the blocks hold: the last block overlaps the one before.
+    sub = q[:200]
+    phi_s, _ = jax.jit(lambda q: _sim._plug_sdf(model, q))(sub)
+    np.testing.assert_allclose(phi_s[need[:200]], ref[:200][need[:200]], rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(phi_s < margin, need[:200])
+
+
 def eqx_replace(model, net):
     import equinox as eqx
 

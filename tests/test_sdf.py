@@ -345,7 +345,8 @@ def test_mesh_sdf_chunking_jit_vmap(plug):
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
 @pytest.mark.parametrize("n_contact", [40, 300])
 def test_scene_mesh_query_exact_where_contact_needs_it(plug, n_contact, dtype):
-    """The step's mesh query (``_sim._mesh_plug_sdf``) against the brute force at every point.
+    """The step's mesh query (``_sim._plug_sdf``, ``_near_plug_sdf``) against the brute force at
+    every point.
 
     40 points within the margin: the usual query (one block of ``_MESH_SDF_FEW``); 300: more
     than that, further blocks up to ``_MESH_SDF_POINTS``. Each case checks which regime its
@@ -364,10 +365,14 @@ def test_scene_mesh_query_exact_where_contact_needs_it(plug, n_contact, dtype):
     pts = np.concatenate([_test_points(mesh, rng, n_near=n_contact, n_far=0, band=margin), rest])
     sdf = sdf.astype(dtype)
     model = SimpleNamespace(
-        mesh_sdf=sdf, plug_half=jnp.asarray(H, dtype), plug_radius=jnp.asarray(R, dtype), margin=margin
+        sdf="mesh",
+        mesh_sdf=sdf,
+        plug_half=jnp.asarray(H, dtype),
+        plug_radius=jnp.asarray(R, dtype),
+        margin=margin,
     )
     q = jnp.asarray(pts, dtype)
-    phi, n = jax.jit(lambda q: _sim._mesh_plug_sdf(model, q))(q)
+    phi, n = jax.jit(lambda q: _sim._plug_sdf(model, q))(q)
     ref, ref_n = mesh_sdf_and_normal(sdf, q)
     near = np.asarray(ref < margin + _sim._NEAR_SLACK)
     few = np.sum(near) <= _sim._MESH_SDF_FEW
@@ -381,7 +386,7 @@ def test_scene_mesh_query_exact_where_contact_needs_it(plug, n_contact, dtype):
     np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=10 * tol)
     # Fewer points than the blocks hold (the last block overlaps the one before).
     sub = q[:200]
-    phi_s, _ = jax.jit(lambda q: _sim._mesh_plug_sdf(model, q))(sub)
+    phi_s, _ = jax.jit(lambda q: _sim._plug_sdf(model, q))(sub)
     near_s = near[:200]
     np.testing.assert_allclose(phi_s[near_s], ref[:200][near_s], atol=tol, rtol=0)
     np.testing.assert_array_equal(phi_s < margin, ref[:200] < margin)
