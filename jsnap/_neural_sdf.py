@@ -179,32 +179,14 @@ class NeuralSDFConfig:
         )
 
 
-@partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _softplus(beta: float, x):
-    """``softplus(β x) / β``, the value of ``jax.nn.softplus`` (``logaddexp(β x, 0)``) bit for
-    bit, with a derivative that reuses the value's ``exp``. ``jax.nn.softplus``'s derivative
-    (``logaddexp``'s) takes a second ``exp``; the network evaluates one of these per hidden unit
-    for the value and the normal of every query point, and the transcendentals are most of
-    that cost: this one made the value + normal of 1024 points 1.27x faster (float32) and 1.29x
-    (float64) side by side (session 18). Its own derivative (needed where a rollout's gradient
-    goes through the contact normals) is JAX's derivative of the rule below."""
-    z = beta * x
-    return (jnp.maximum(z, 0) + jnp.log1p(jnp.exp(-jnp.abs(z)))) / beta
-
-
-@_softplus.defjvp
-def _softplus_jvp(beta, primals, tangents):
-    (x,), (dx,) = primals, tangents
-    z = beta * x
-    e = jnp.exp(-jnp.abs(z))
-    # sigmoid(z) = 1 / (1 + e^-z), written with e = e^-|z| <= 1 so that nothing overflows
-    slope = jnp.where(z >= 0, 1.0, e) / (1.0 + e)
-    return (jnp.maximum(z, 0) + jnp.log1p(e)) / beta, slope * dx
-
-
 def _activation(name: str, beta: float):
+    # A softplus whose derivative reuses its exp (``jax.nn.softplus`` is ``logaddexp(x, 0)``,
+    # whose derivative takes a second exp) was tried twice, in sessions 15 and 18: the value +
+    # normal query alone ran 1.27-1.40x faster, but the neural-SDF rollouts slower (session 18,
+    # fresh processes interleaved: the reduced 1218-dof scene 1842-2107 against 2259-2537 µs per
+    # step, with light contact settings 1008-1154 against 1098-1223), so it was not kept.
     if name == "softplus":
-        return partial(_softplus, beta)
+        return lambda x: jax.nn.softplus(beta * x) / beta
     return {"silu": jax.nn.silu, "gelu": jax.nn.gelu, "tanh": jnp.tanh}[name]
 
 

@@ -99,42 +99,6 @@ def test_normal_is_the_normalised_gradient(trained):
         np.testing.assert_allclose(n, ag / np.linalg.norm(ag, axis=1, keepdims=True), atol=1e-10)
 
 
-def test_softplus_and_its_derivatives_are_jax_nn_softplus(trained, monkeypatch):
-    """The network's softplus (a custom derivative that shares its exp) against
-    ``jax.nn.softplus(β x) / β``: the value bit for bit, first and second derivatives to
-    round-off, over both signs, zero and |β x| up to 700 (where a naive exp overflows); and
-    the Jacobian of the normals (what a gradient through contact differentiates) the same as
-    with ``jax.nn.softplus`` in the network."""
-    beta = 100.0
-    x = jnp.concatenate([jnp.linspace(-7.0, 7.0, 2001), jnp.array([0.0, -0.0, 1e-300, -1e-300])])
-    ref = lambda x: jax.nn.softplus(beta * x) / beta  # noqa: E731
-    ours = lambda x: nsdf._softplus(beta, x)  # noqa: E731
-    np.testing.assert_array_equal(jax.vmap(ours)(x), jax.vmap(ref)(x))
-    for order in (1, 2):
-        d_ours, d_ref = ours, ref
-        for _ in range(order):
-            d_ours, d_ref = jax.grad(d_ours), jax.grad(d_ref)
-        a, b = jax.vmap(d_ours)(x), jax.vmap(d_ref)(x)
-        assert np.all(np.isfinite(a))
-        np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-13 * float(jnp.max(jnp.abs(b))))
-    assert float(jax.grad(ours)(0.0)) == 0.5 and float(jax.grad(ours)(7.0)) == 1.0
-    assert float(jax.grad(ours)(-7.0)) == pytest.approx(np.exp(-700.0), rel=1e-12)
-
-    net = trained[0].astype(jnp.float64)
-    p = jnp.asarray(np.random.default_rng(3).uniform(-0.8, 0.8, (16, 3)))
-
-    def normal_jacobian():
-        f = lambda q: nsdf._phi_and_normal(net, q[None])[1][0]  # noqa: E731
-        return jax.vmap(jax.jacfwd(f))(p), jax.vmap(jax.jacrev(f))(p)
-
-    fwd, rev = normal_jacobian()
-    monkeypatch.setattr(nsdf, "_softplus", lambda b, x: jax.nn.softplus(b * x) / b)
-    fwd_ref, rev_ref = normal_jacobian()
-    scale = float(jnp.max(jnp.abs(fwd_ref)))
-    np.testing.assert_allclose(fwd, fwd_ref, atol=1e-11 * scale)
-    np.testing.assert_allclose(rev, rev_ref, atol=1e-11 * scale)
-
-
 def test_far_field_is_positive_and_continuous(trained):
     net = trained[0].astype(jnp.float64)
     lo = np.asarray(net.center - net.half)
