@@ -192,7 +192,7 @@ def _near_plug_sdf(model: Model, q, exact, radius, slack):
     point would give, as long as at most ``_MESH_SDF_POINTS`` points lie within the margin. The
     blocks are a scan over one compiled copy of the search (each skipped by a ``cond`` when not
     needed; under ``vmap`` every block is evaluated). The network at the 384 nearest points on
-    every query instead (sessions 3-17) made neural-SDF rollouts 1.2-1.4x slower, with the same
+    every query instead (sessions 3-17) made neural-SDF rollouts 1.1-2.2x slower, with the same
     forces bit for bit (docs/neural_sdf.md).
     """
     n = q.shape[0]
