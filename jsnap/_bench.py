@@ -225,9 +225,10 @@ def _differentiation(d):
 def _differentiation_check(d):
     p = d["check"]["params"]
     worst = max(p, key=lambda n: p[n]["rel_error"])
+    method = d.get("check_method", "full")
     return (
-        f"{', '.join(p)}: central FD over {len(d['fd_steps'])} steps each; worst relative error "
-        f"{p[worst]['rel_error']:.1e} ({worst}), where the FD plateau's own spread is "
+        f"{method} socket; {', '.join(p)}: central FD over {len(d['fd_steps'])} steps each; "
+        f"worst relative error {p[worst]['rel_error']:.1e} ({worst}), where the FD plateau's own spread is "
         f"{p[worst]['plateau_spread']:.1e}"
     )
 

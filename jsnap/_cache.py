@@ -1,5 +1,5 @@
-"""The on-disk cache of built artefacts (trained neural SDFs, reduced models) and, for the
-command line, of JAX's compiled programs.
+"""The on-disk cache of built artefacts (trained neural SDFs, reduced models, the full socket's
+modes) and, for the command line, of JAX's compiled programs.
 
 Files live under :func:`cache_dir` (``$JSNAP_CACHE`` or ``~/.cache/jsnap``), named by a hash of
 everything they depend on, and are written atomically by their modules. :func:`load_or_make`
@@ -19,9 +19,11 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import json
 import os
 import shutil
 import sys
+import tempfile
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -29,7 +31,9 @@ from typing import TypeVar
 
 import numpy as np
 
-__all__ = ["KINDS", "cache_dir", "checksum", "clear", "load_or_make", "usage", "use_compilation_cache"]
+__all__ = [
+    "KINDS", "cache_dir", "checksum", "clear", "load_or_make", "save_npz", "usage", "use_compilation_cache",
+]  # fmt: skip
 
 T = TypeVar("T")
 
@@ -44,6 +48,7 @@ def cache_dir() -> Path:
 KINDS = {
     "neural_sdf": "trained neural SDF weights (jsnap train-sdf, solver.sdf = neural)",
     "reduced": "segmented and reduced socket models (solver.method = segmented | reduced)",
+    "modal": "the full socket's modes (solver.method = modal)",
     "xla": "JAX's compiled programs, kept by the command line (use_compilation_cache)",
 }
 
@@ -115,7 +120,7 @@ def usage() -> dict:
 
 
 def clear(kinds=None) -> dict:
-    """Remove the cached files of the given folders of :data:`KINDS` (default: all three);
+    """Remove the cached files of the given folders of :data:`KINDS` (default: all of them);
     returns ``{folder: bytes removed}``. Lock files stay (see the module's note); a process that
     is building an artefact meanwhile writes it again. Other names raise ValueError."""
     kinds = list(KINDS) if kinds is None else list(kinds)
@@ -143,6 +148,33 @@ def checksum(meta_json: str, arrays: dict) -> str:
         h.update(f"{name}|{a.dtype.str}|{a.shape}".encode())
         h.update(a.tobytes())
     return h.hexdigest()
+
+
+def save_npz(path, format_name: str, version: int, meta: dict, arrays: dict) -> Path:
+    """Write ``arrays`` to ``path`` (``.npz``) atomically (a temporary file beside it, then a
+    rename: a reader never sees half a file), with ``format`` and ``format_version``, ``meta``
+    as JSON and the :func:`checksum` of both, which the module's reader verifies."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arrays = {k: np.asarray(v) for k, v in arrays.items()}
+    meta_json = json.dumps(meta, sort_keys=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(
+                fh,
+                format=np.asarray(format_name),
+                format_version=np.asarray(version),
+                meta=np.asarray(meta_json),
+                checksum=np.asarray(checksum(meta_json, arrays)),
+                **arrays,
+            )
+        os.chmod(tmp, 0o644)  # mkstemp makes it private; nothing cached here is secret
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
 
 
 def _stamp(path: Path):

@@ -320,7 +320,7 @@ def main(argv=None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     sim = sub.add_parser("simulate", help="run a scene (default: the shipped default scene)")
     sim.add_argument("scene", nargs="?", default=None, help="scene TOML file")
-    sim.add_argument("--method", choices=["full", "segmented", "reduced"], default=None)
+    sim.add_argument("--method", choices=["full", "modal", "segmented", "reduced"], default=None)
     sim.add_argument("--out", default="jsnap-out", help="output directory (default jsnap-out)")
     sim.add_argument("--json", action="store_true", help="print a JSON summary to stdout")
     tr = sub.add_parser("train-sdf", help="train the neural SDF of a plug mesh (cached)")

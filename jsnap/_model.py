@@ -18,6 +18,7 @@ import numpy as np
 from jsnap._fem import Assembly, assemble
 from jsnap._geometry import Cantilever, TetMesh, mesh_cantilever
 from jsnap._integrate import Material, SparseBlocks
+from jsnap._modal import ModalSocket, load_or_compute, socket_from_modes
 from jsnap._neural_sdf import NeuralSDF, load_or_train
 from jsnap._reduce import ReducedSocket, build_socket
 from jsnap._scene import Scene, SceneError, connector_geometry
@@ -101,7 +102,8 @@ class Model(eqx.Module):
 
     Array fields (traced):
         socket: the socket's linear model as the contact step sees it (``_socket``): the
-            full FEM (:class:`FullSocket`) or a reduced model.
+            full FEM (:class:`FullSocket`), the same in modal coordinates
+            (:class:`jsnap._modal.ModalSocket`) or a reduced model.
         sample_rest: (P, 3) rest positions of contact candidate points on the socket, mm.
         sample_stencil: (P, 8, 3) rest positions of each point's normal stencils, mm: the
             deformed normals of its side and (at a corner) of the other side are
@@ -118,7 +120,7 @@ class Model(eqx.Module):
     Static fields: dt (s), sizes, solver choices.
     """
 
-    socket: FullSocket | ReducedSocket
+    socket: FullSocket | ModalSocket | ReducedSocket
     sample_rest: jax.Array
     sample_stencil: jax.Array
     sample_corner: jax.Array
@@ -430,7 +432,13 @@ def build(scene: Scene, *, progress: bool = False) -> Model:
         stencil_weights=st_weights,
     )
     reduction = None
-    if s["method"] != "full":  # segments: the elements of the contact faces (+ margin) and the rest
+    if s["method"] == "modal":  # the same full model in the coordinates of all its modes
+        nu = float(scene["material"]["poissons_ratio"])
+        w, Phi, reduction = load_or_compute(asm, nu, progress=progress)
+        socket = socket_from_modes(asm, nu, w, Phi, (fnodes, weights), (st_nodes, st_weights))
+        what = "loaded from" if reduction["cached"] else f"computed in {reduction['seconds']:.1f} s, cached in"
+        say(f"jsnap: modal socket, {w.size} modes {what} {reduction['path']}")
+    elif s["method"] != "full":  # segments: the elements of the contact faces (+ margin) and the rest
         seeds = np.concatenate([faces[owner], st_faces[st_owner]])
         socket, reduction = build_socket(
             asm,

@@ -28,8 +28,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import os
-import tempfile
 import time
 import warnings
 from dataclasses import dataclass
@@ -43,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 import trimesh
 
-from ._cache import cache_dir, load_or_make
+from ._cache import cache_dir, load_or_make, save_npz
 from ._cache import checksum as _checksum
 from ._sdf import MeshSDF, mesh_sdf_and_normal
 from ._util import safe_norm
@@ -635,8 +633,6 @@ def save(net: NeuralSDF, path, *, key: str, mesh_hash: str, config: NeuralSDFCon
     hash, cache key, ``extra``), ``checksum`` (SHA-256 of ``meta`` and every array), the
     normalisation (``center``, ``half``, ``out_scale``) and the weights (``param/<layer>/<name>``).
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     arrays = {
         "center": np.asarray(net.center),
         "half": np.asarray(net.half),
@@ -650,24 +646,7 @@ def save(net: NeuralSDF, path, *, key: str, mesh_hash: str, config: NeuralSDFCon
         key=key,
         extra=extra or {},
     )
-    meta_json = json.dumps(meta, sort_keys=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(
-                fh,
-                format=np.asarray(FORMAT_NAME),
-                format_version=np.asarray(FORMAT_VERSION),
-                meta=np.asarray(meta_json),
-                checksum=np.asarray(_checksum(meta_json, arrays)),
-                **arrays,
-            )
-        os.chmod(tmp, 0o644)  # mkstemp makes it private; weights are not secret
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return save_npz(path, FORMAT_NAME, FORMAT_VERSION, meta, arrays)
 
 
 def load(path, *, key: str | None = None) -> tuple[NeuralSDF, dict]:

@@ -58,8 +58,6 @@ from __future__ import annotations
 import hashlib
 import itertools
 import json
-import os
-import tempfile
 import time
 import warnings
 from dataclasses import dataclass
@@ -74,10 +72,11 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import skfem
 
-from jsnap._cache import cache_dir, load_or_make
+from jsnap._cache import cache_dir, load_or_make, save_npz
 from jsnap._cache import checksum as _checksum
 from jsnap._fem import _ELEMENTS, Assembly, _k_lam, _k_mu, _m1, lame
 from jsnap._integrate import Material, spd_inverse
+from jsnap._socket import ContactRows
 
 __all__ = [
     "FORMAT_VERSION",
@@ -647,7 +646,7 @@ class ReducedOperator(eqx.Module):
         return jax.tree_util.tree_map(lambda a: a.astype(dtype), self)
 
 
-class ReducedSocket(eqx.Module):
+class ReducedSocket(ContactRows):
     """Segmented (``method = "segmented"``) or segmented and reduced (``"reduced"``) socket.
 
     The state ``x`` (r,) stacks every segment's coordinates: its nodal dofs (segmented) or its
@@ -680,11 +679,6 @@ class ReducedSocket(eqx.Module):
     out_kl: jax.Array
     out_km: jax.Array
     out_m1: jax.Array
-    node_rows: jax.Array
-    sample_nodes: jax.Array
-    sample_weights: jax.Array
-    stencil_nodes: jax.Array
-    stencil_weights: jax.Array
     recon: jax.Array | None
     recon_index: jax.Array
     orders: tuple[int, ...] = eqx.field(static=True)
@@ -726,19 +720,6 @@ class ReducedSocket(eqx.Module):
         res = rhs - op.S_el @ vbar - op.sc * (Dg.T @ (Dg @ vbar))
         return vbar + op.S_inv @ res
 
-    def _nodes(self, x):
-        return jnp.einsum("cdr,r->cd", self.node_rows, x)
-
-    def sample_disp(self, x):
-        # A sum over the k nodes, not einsum("pk,pkd->pd"): XLA:CPU runs that as P tiny dots,
-        # 2.5x slower at ~600 points (the step calls this twice).
-        xn, w, nodes = self._nodes(x), self.sample_weights, self.sample_nodes
-        return sum(w[:, k, None] * xn[nodes[:, k]] for k in range(w.shape[1]))
-
-    def stencil_disp(self, x, idx):
-        xn = self._nodes(x)
-        return jnp.einsum("csk,cskd->csd", self.stencil_weights[idx], xn[self.stencil_nodes[idx]])
-
     def contact_operator(self, op: ReducedOperator, idx):
         """``A = J S^-1`` (C, 3, r), interpolated from the contact nodes' precomputed
         ``J_c S^-1``, and ``W = A J'`` (C, 3, C, 3): O(C k r + (3C)^2 r) per step, no (r, r)
@@ -748,8 +729,9 @@ class ReducedSocket(eqx.Module):
         J = jnp.einsum("ck,ckdr->cdr", w, self.node_rows[nodes])
         return A, jnp.einsum("cdr,efr->cdef", A, J)
 
-    def point_velocity(self, vbar, idx):
-        return jnp.einsum("ck,ckd->cd", self.sample_weights[idx], self._nodes(vbar)[self.sample_nodes[idx]])
+    def contact_velocity(self, op: ReducedOperator, A, force):
+        """``A' force``: the midpoint velocity that point forces (C, 3) add."""
+        return jnp.einsum("cdr,cd->r", A, force)
 
     def energy(self, op: ReducedOperator, x, v):
         """Discrete energy ``1/2 v'M_r v + 1/2 x'K_r x`` (interface springs included), N mm."""
@@ -979,27 +961,8 @@ def cache_path(key: str) -> Path:
 def save(arrays: dict, meta: dict, path) -> Path:
     """Write a reduced model (the ReducedSocket arrays and ``meta``, which must hold ``key`` and
     ``orders``) to ``path`` (``.npz``), atomically, with format name, version and a checksum."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    arrays = {k: np.asarray(v) for k, v in arrays.items() if v is not None}
-    meta_json = json.dumps(meta, sort_keys=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(
-                fh,
-                format=np.asarray(FORMAT_NAME),
-                format_version=np.asarray(FORMAT_VERSION),
-                meta=np.asarray(meta_json),
-                checksum=np.asarray(_checksum(meta_json, arrays)),
-                **arrays,
-            )
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    arrays = {k: v for k, v in arrays.items() if v is not None}
+    return save_npz(path, FORMAT_NAME, FORMAT_VERSION, meta, arrays)
 
 
 def load(path, *, key: str | None = None) -> tuple[dict, dict]:

@@ -30,7 +30,7 @@ REQUIRED = object()
 # Values the kernels implement in this version. A scene asking for another value of these keys
 # is rejected at load time, naming the key, rather than accepted and silently replaced.
 IMPLEMENTED = {
-    ("solver", "method"): ("full", "segmented", "reduced"),
+    ("solver", "method"): ("full", "modal", "segmented", "reduced"),
     ("solver", "sdf"): ("analytic", "mesh", "neural"),
 }
 
@@ -118,7 +118,7 @@ _SCHEMA: dict[str, dict[str, _Key]] = {
     },
     "solver": {
         "dt": _Key(float, 1e-3, _positive, doc="time step, s"),
-        "method": _Key(str, "full", choices=("full", "segmented", "reduced")),
+        "method": _Key(str, "full", choices=("full", "modal", "segmented", "reduced")),
         "element": _Key(str, "P2", choices=("P1", "P2")),
         "mesh_size": _Key(float, 0.8, _positive, doc="element size, mm"),
         "hook_mesh_size": _Key(float, None, _optional_positive, doc="element size at the hook"),

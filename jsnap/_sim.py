@@ -121,7 +121,9 @@ class Result(eqx.Module):
         corrected: (n,) bool, the step was solved a second time: its solved motion carried
             points that were not in the buffer into the plug (predict-correct, see ``step``).
         travel: (n,) plug travel along -z since t = 0, mm.
-        x: (n, dof) socket displacement at free dofs, mm (None unless kept).
+        x: (n, dof) socket coordinates (None unless kept): the displacement at the free dofs
+            (mm) for the full model; modal or reduced coordinates otherwise, which
+            ``model.socket.free_displacement`` maps to the free dofs.
     """
 
     t: jax.Array
@@ -438,7 +440,7 @@ def step(model: Model, prepared: Prepared, state: State, control: jax.Array):
     # The path within the step is straight (x + s T vbar), but a released stiff socket can move
     # farther than the plug is thick in one step (PMI's undamped high modes flip sign), so the
     # path is checked at several points, not only at its end.
-    dy = T * sock.sample_disp(vbar_free + jnp.einsum("cdn,cd->n", prob.A, Gamma))
+    dy = T * sock.sample_disp(vbar_free + sock.contact_velocity(op, prob.A, Gamma))
     dp = T * (vp_free - s_p * jnp.sum(Gamma, axis=0))
     phi_end = jnp.min(
         jnp.stack([_plug_sdf(model, y + f * dy - state.plug - f * dp)[0] for f in _PATH_CHECKS]), axis=0
@@ -461,7 +463,7 @@ def step(model: Model, prepared: Prepared, state: State, control: jax.Array):
     idx, A, active = prob.idx, prob.A, prob.active
 
     # 4. Update.
-    vbar = vbar_free + jnp.einsum("cdn,cd->n", A, Gamma)
+    vbar = vbar_free + sock.contact_velocity(op, A, Gamma)
     x_new = x + T * vbar
     v_new = 2.0 * vbar - v
     total = jnp.sum(Gamma, axis=0)

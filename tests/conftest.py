@@ -30,3 +30,12 @@ def small_arm():
     f = _fem.traction_load(asm, lambda x: np.isclose(x[2], ARM["L"]), [1.0, 0.0, 0.0])
     u = _fem.solve_static(asm, 2200.0, 0.35, f)
     return asm, free_blocks(asm), f, u
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    """A fresh jsnap cache folder (``JSNAP_CACHE``) for the module's builds."""
+    with pytest.MonkeyPatch.context() as mp:
+        path = tmp_path_factory.mktemp("jsnap_cache")
+        mp.setenv("JSNAP_CACHE", str(path))
+        yield path

@@ -206,16 +206,16 @@ def test_cache_command_lists_and_clears(tmp_path, monkeypatch, capsys):
         assert cli_main(["cache", "--json"]) == 0
         return {k: (v["files"], v["bytes"]) for k, v in json.loads(capsys.readouterr().out)["folders"].items()}
 
-    assert listed() == {"neural_sdf": (1, 100), "reduced": (2, 350), "xla": (0, 0)}
+    assert listed() == {"neural_sdf": (1, 100), "reduced": (2, 350), "modal": (0, 0), "xla": (0, 0)}
     assert cli_main(["cache"]) == 0
     assert "reduced" in capsys.readouterr().out
     assert cli_main(["cache", "--clear", "reduced", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["removed_bytes"] == {"reduced": 350}
-    assert listed() == {"neural_sdf": (1, 100), "reduced": (0, 0), "xla": (0, 0)}
+    assert listed() == {"neural_sdf": (1, 100), "reduced": (0, 0), "modal": (0, 0), "xla": (0, 0)}
     assert (tmp_path / "reduced" / "b.npz.lock").exists()
     assert cli_main(["cache", "--clear", "nonsense"]) == 2
     assert "nonsense" in capsys.readouterr().err
     assert cli_main(["cache", "--clear"]) == 0
     assert "removed neural_sdf" in capsys.readouterr().out
-    assert listed() == {"neural_sdf": (0, 0), "reduced": (0, 0), "xla": (0, 0)}
+    assert listed() == {"neural_sdf": (0, 0), "reduced": (0, 0), "modal": (0, 0), "xla": (0, 0)}
     assert (tmp_path / "other" / "keep.txt").read_text() == "not jsnap's"

@@ -30,14 +30,6 @@ SMALL = {
 
 
 @pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    with pytest.MonkeyPatch.context() as mp:
-        path = tmp_path_factory.mktemp("jsnap_cache")
-        mp.setenv("JSNAP_CACHE", str(path))
-        yield path
-
-
-@pytest.fixture(scope="module")
 def models(cache):
     """Full, segmented and reduced models of the same small scene."""
     scene = jsnap.load_scene().replace(SMALL)

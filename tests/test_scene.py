@@ -23,7 +23,7 @@ def test_default_scene_loads_with_design_values():
         ({"connector.undercut": -0.2}, r"connector\.undercut"),
         ({"plug.fillet": 5.0}, r"plug\.fillet = 5\.0"),
         ({"solver.element": "P3"}, r"solver\.element = 'P3'"),
-        ({"solver.method": "modal"}, r"solver\.method = 'modal': must be one of full, segmented, reduced"),
+        ({"solver.method": "sparse"}, r"solver\.method = 'sparse': must be one of full, modal, segm"),
         ({"contact.capacity": 2.5}, r"contact\.capacity = 2\.5: must be an integer"),
     ],
 )
