@@ -154,9 +154,10 @@ def run(scene, timed: bool = True) -> dict:
         "travel": np.asarray(res.travel, np.float64).tolist(),
         "insertion_force": F.tolist(),
     }
-    if model.host.reduction is not None:
-        row["orders"] = list(model.socket.orders)
+    if model.host.reduction is not None:  # a reduced model's or the modes' cache
         row["reduction_cached"] = bool(model.host.reduction["cached"])
+        if model.method != "modal":
+            row["orders"] = list(model.socket.orders)
     if timed and first > SLOW_FIRST_CALL_S:
         # A slow rollout (none since session 7; the exact mesh SDF took ~40 s) is not run again:
         # its compile time is that of a two-step rollout (the same scan body, compiled anew for
