@@ -273,8 +273,10 @@ class ContactProblem(eqx.Module):
 
     W: (3C, 3C) Delassus matrix in contact frames, mm/(N s); q: (3C,) free relative velocity
     plus gap stabilisation, mm/s; mu: (C,); active: (C,) bool; idx: (C,) candidate index of
-    each slot; A: (C, 3, n) ``J S^-1``; R: (C, 3, 3) frames [n, t1, t2]; points: (C, 3) slot
-    positions, mm; gamma0: (C, 3) warm start, N; overflow: candidates that did not fit.
+    each slot; A: (C, 3, n) ``J S^-1``, or what the socket's ``contact_velocity`` applies in
+    its stead (the modal socket: the slots' interpolation); R: (C, 3, 3) frames [n, t1, t2];
+    points: (C, 3) slot positions, mm; gamma0: (C, 3) warm start, N; overflow: candidates that
+    did not fit.
     """
 
     W: jax.Array
