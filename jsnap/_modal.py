@@ -8,7 +8,7 @@ With ``K(E, nu0) = E K1`` and ``M = rho M1``, the generalised eigenvectors ``K1 
 one multiply per mode instead of the dense ``S^-1`` pass of :class:`jsnap._socket.FullSocket`
 (Rayleigh damping ``D = alpha M + beta K`` is diagonal too). The same discrete equations: no
 mode is dropped, nothing is approximated. The step reads the modes only at the contact nodes
-(the interpolating nodes of the candidate points and their stencils: 185 of the default mesh's
+(the interpolating nodes of the candidate points and their stencils: 182 of the default mesh's
 1914 nodes) and the base wrench as six output rows, so its memory traffic is O(c n), not
 O(n^2).
 
