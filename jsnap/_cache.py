@@ -32,7 +32,8 @@ from typing import TypeVar
 import numpy as np
 
 __all__ = [
-    "KINDS", "cache_dir", "checksum", "clear", "load_or_make", "save_npz", "usage", "use_compilation_cache",
+    "KINDS", "cache_dir", "checksum", "clear", "load_or_make", "read_npz", "save_npz", "usage",
+    "use_compilation_cache",
 ]  # fmt: skip
 
 T = TypeVar("T")
@@ -175,6 +176,34 @@ def save_npz(path, format_name: str, version: int, meta: dict, arrays: dict) -> 
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def read_npz(path: Path, format_name: str, version: int, what: str, bad) -> tuple[dict, dict]:
+    """``(arrays, meta)`` from a file written by :func:`save_npz`, after checking that it reads,
+    that it is a ``format_name`` file of ``version`` and that its checksum holds; ``bad(why)``
+    makes the module's exception (raised here), ``what`` names the kind of file in the message.
+    The caller checks that the file exists, and its key and arrays."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except Exception as err:  # zipfile, zlib, OSError, ValueError ... all mean "unreadable"
+        raise bad(f"unreadable or corrupt file ({type(err).__name__}: {err})") from None
+    if "format" not in data or str(data["format"]) != format_name:
+        raise bad(f"not a {what} (no 'format' = {format_name!r})")
+    found = int(data.get("format_version", -1))
+    if found != version:
+        raise bad(f"format version {found}, this jsnap reads version {version}")
+    try:
+        meta_json = str(data.pop("meta"))
+        stored = str(data.pop("checksum"))
+        meta = json.loads(meta_json)
+    except (KeyError, ValueError, TypeError) as err:
+        raise bad(f"corrupt metadata ({type(err).__name__}: {err})") from None
+    for k in ("format", "format_version"):
+        data.pop(k)
+    if checksum(meta_json, data) != stored:
+        raise bad("checksum mismatch: the file is corrupt")
+    return data, meta
 
 
 def _stamp(path: Path):

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg as sla
 
-from jsnap._cache import cache_dir, checksum, load_or_make, save_npz
+from jsnap._cache import cache_dir, load_or_make, read_npz, save_npz
 from jsnap._fem import lame
 from jsnap._integrate import Material
 from jsnap._reduce import _hash_arrays, _wrench_rows
@@ -238,26 +238,15 @@ def load(path, key: str):
     def bad(why):
         return ModesFileError(f"{path}: {why}; not using it (jsnap.build computes the modes again)")
 
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-        if str(data.get("format")) != FORMAT_NAME or int(data.get("format_version", -1)) != FORMAT_VERSION:
-            raise bad(f"not a {FORMAT_NAME} file of version {FORMAT_VERSION}")
-        meta_json = str(data["meta"])
-        arrays = {"w": data["w"], "Phi": data["Phi"]}
-        meta = json.loads(meta_json)
-    except ModesFileError:
-        raise
-    except Exception as err:  # zipfile, zlib, OSError, KeyError, ValueError: unreadable
-        raise bad(f"unreadable ({type(err).__name__}: {err})") from None
-    if checksum(meta_json, arrays) != str(data["checksum"]):
-        raise bad("checksum mismatch: the file is corrupt")
+    data, meta = read_npz(path, FORMAT_NAME, FORMAT_VERSION, "jsnap modes file", bad)
+    if set(data) != {"w", "Phi"}:
+        raise bad(f"arrays {sorted(data)}, expected w and Phi")
     if meta.get("key") != key:
         raise bad("computed for another mesh or Poisson ratio")
-    n = arrays["w"].shape[0]
-    if arrays["Phi"].shape != (n, n):
-        raise bad(f"Phi of shape {arrays['Phi'].shape} for {n} modes")
-    return arrays["w"], arrays["Phi"], meta
+    n = data["w"].shape[0]
+    if data["Phi"].shape != (n, n):
+        raise bad(f"Phi of shape {data['Phi'].shape} for {n} modes")
+    return data["w"], data["Phi"], meta
 
 
 def load_or_compute(asm, nu: float, *, progress: bool = False):

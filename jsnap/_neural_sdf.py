@@ -41,8 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 import trimesh
 
-from ._cache import cache_dir, load_or_make, save_npz
-from ._cache import checksum as _checksum
+from ._cache import cache_dir, load_or_make, read_npz, save_npz
 from ._sdf import MeshSDF, mesh_sdf_and_normal
 from ._util import safe_norm
 
@@ -673,27 +672,11 @@ def load(path, *, key: str | None = None) -> tuple[NeuralSDF, dict]:
     def bad(why):
         return NeuralSDFFileError(f"{path}: {why}; not using it (retrain with `jsnap train-sdf`)")
 
+    data, meta = read_npz(path, FORMAT_NAME, FORMAT_VERSION, "jsnap neural SDF weights file", bad)
     try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except Exception as err:  # zipfile, zlib, OSError, ValueError ... all mean "unreadable"
-        raise bad(f"unreadable or corrupt weights file ({type(err).__name__}: {err})") from None
-    if "format" not in data or str(data["format"]) != FORMAT_NAME:
-        raise bad("not a jsnap neural SDF weights file (no 'format' = 'jsnap.neural_sdf')")
-    version = int(data.get("format_version", -1))
-    if version != FORMAT_VERSION:
-        raise bad(f"format version {version}, this jsnap reads version {FORMAT_VERSION}")
-    try:
-        meta_json = str(data.pop("meta"))
-        checksum = str(data.pop("checksum"))
-        meta = json.loads(meta_json)
         config = NeuralSDFConfig.from_dict(meta["config"])
     except (KeyError, ValueError, TypeError) as err:
         raise bad(f"corrupt metadata ({type(err).__name__}: {err})") from None
-    for k in ("format", "format_version"):
-        data.pop(k)
-    if _checksum(meta_json, data) != checksum:
-        raise bad("checksum mismatch: the file is corrupt")
     if key is not None and meta.get("key") != key:
         raise bad(
             f"trained for another mesh or other settings (key {str(meta.get('key'))[:12]}…, "

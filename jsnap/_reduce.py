@@ -72,8 +72,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import skfem
 
-from jsnap._cache import cache_dir, load_or_make, save_npz
-from jsnap._cache import checksum as _checksum
+from jsnap._cache import cache_dir, load_or_make, read_npz, save_npz
 from jsnap._fem import _ELEMENTS, Assembly, _k_lam, _k_mu, _m1, lame
 from jsnap._integrate import Material, spd_inverse
 from jsnap._socket import ContactRows
@@ -985,27 +984,11 @@ def load(path, *, key: str | None = None) -> tuple[dict, dict]:
     def bad(why):
         return ReducedModelFileError(f"{path}: {why}; not using it (it is rebuilt by jsnap.build)")
 
+    data, meta = read_npz(path, FORMAT_NAME, FORMAT_VERSION, "jsnap reduced model", bad)
     try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except Exception as err:  # zipfile, zlib, OSError, ValueError ... all mean "unreadable"
-        raise bad(f"unreadable or corrupt file ({type(err).__name__}: {err})") from None
-    if "format" not in data or str(data["format"]) != FORMAT_NAME:
-        raise bad(f"not a jsnap reduced model (no 'format' = {FORMAT_NAME!r})")
-    version = int(data.get("format_version", -1))
-    if version != FORMAT_VERSION:
-        raise bad(f"format version {version}, this jsnap reads version {FORMAT_VERSION}")
-    try:
-        meta_json = str(data.pop("meta"))
-        checksum = str(data.pop("checksum"))
-        meta = json.loads(meta_json)
         orders = tuple(int(o) for o in meta["orders"])
     except (KeyError, ValueError, TypeError) as err:
         raise bad(f"corrupt metadata ({type(err).__name__}: {err})") from None
-    for k in ("format", "format_version"):
-        data.pop(k)
-    if _checksum(meta_json, data) != checksum:
-        raise bad("checksum mismatch: the file is corrupt")
     if key is not None and meta.get("key") != key:
         raise bad(f"built for another scene (key {str(meta.get('key'))[:12]}…, expected {key[:12]}…)")
     missing = [k for k in _ARRAYS if k not in data and k != "recon"]
