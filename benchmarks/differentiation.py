@@ -66,11 +66,11 @@ TIGHT = {"contact.iterations": 20000, "contact.tolerance": 1e-11}
 CHECK_METHOD = "modal"  # the gradient check's socket (see the module docstring)
 
 
-def _scan_plain(model, prepared, state, controls, keep_x):
+def _scan_plain(model, prepared, state, controls, keep_x, rolled=True):
     """_sim._scan without the checkpoint (reverse mode then stores every step's internals)."""
 
     def body(s, c):
-        s, out = _sim.step(model, prepared, s, c)
+        s, out = _sim.step(model, prepared, s, c, rolled)
         return s, (out, s.x if keep_x else None)
 
     return jax.lax.scan(body, state, controls)

@@ -18,13 +18,14 @@ from __future__ import annotations
 
 import math
 from functools import partial
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jsnap._contact import solve_admm, solve_apgd, solve_pgs
+from jsnap._contact import ContactSolution, solve_admm, solve_apgd, solve_pgs
 from jsnap._implicit import implicit_solver
 from jsnap._model import Model, Params
 from jsnap._neural_sdf import neural_sdf_and_normal
@@ -268,6 +269,22 @@ def _rotate_blocks(R, W):
     return sum(T[..., f, None] * R[None, None, :, f, :] for f in range(3))
 
 
+class _Pass(NamedTuple):
+    """One solve of a step's contact (``step``'s ``attempt``): what the update and the
+    predict-correct check need from it."""
+
+    dv: jax.Array  # the contact's velocity change, the socket's contact_velocity(op, A, Gamma)
+    Gamma: jax.Array  # (C, 3) forces on the socket, world axes, N
+    sol: ContactSolution
+    idx: jax.Array
+    active: jax.Array
+    points: jax.Array
+    overflow: jax.Array
+    phi_end: jax.Array  # (P,) least signed distance along the solved path
+    fresh: jax.Array  # (P,) points that path carries into the plug, not in the buffer
+    corrected: jax.Array  # this is the second solve
+
+
 class ContactProblem(eqx.Module):
     """One step's cone problem (see ``_contact``) and what maps it back to the socket.
 
@@ -356,7 +373,7 @@ def _buckets(capacity: int) -> tuple[int, ...]:
     return tuple(sorted({small, capacity}))
 
 
-def _solve(model: Model, prob: ContactProblem, sizes: tuple[int, ...] | None = None):
+def _solve(model: Model, prob: ContactProblem, whole=False):
     """Solve the step's cone problem; ``(solution, Gamma)`` with Gamma (C, 3) in world axes.
 
     Only the active slots carry force, and the buffer fills its slots from the front (top_k),
@@ -364,22 +381,30 @@ def _solve(model: Model, prob: ContactProblem, sizes: tuple[int, ...] | None = N
     one (a ``lax.switch``): inactive slots enter the problem only as zero rows and columns of
     W, so the solution is the same, while each APGD iteration's matvec shrinks with the square
     of the size (the default 64 slots hold 10-15 active ones: a 16-slot solve, measured 2x
-    faster per step). Under ``vmap`` the switch runs every branch (selects), ~1.3x the full cost.
-    ``sizes`` overrides the sizes (the predict-correct second solve uses the whole buffer).
+    faster per step). ``whole`` (a bool, traced or not) takes the whole buffer, as the
+    predict-correct second solve does; ``True`` compiles that size alone.
+
+    Under ``vmap`` the switch runs every branch (a select): the branches not taken get no
+    active slot, so their solves stop at their first check instead of running to the
+    iteration cap on a truncated problem (that cost ~1.3x a whole-buffer solve; measured on
+    batches of 32 reduced scenes, 20-27 % less per step with the default contact).
     """
     solve = {"apgd": solve_apgd, "admm": solve_admm, "pgs": solve_pgs}[model.contact_solver]
     if model.contact_gradient == "implicit":  # derivatives of the solution, not the iterations
         solve = implicit_solver(solve)
     C = prob.mu.shape[0]
-    sizes = sizes or _buckets(C)
+    sizes = (C,) if whole is True else _buckets(C)
+    # Slots up to the last active one (a prefix however the buffer was filled).
+    n = jnp.max(jnp.where(prob.active, jnp.arange(1, C + 1), 0))
+    branch = jnp.where(whole, len(sizes) - 1, jnp.sum(n > jnp.asarray(sizes[:-1])))
 
-    def leading(k):
+    def leading(i, k):
         def f(_):
             sol = solve(
                 prob.W[: 3 * k, : 3 * k],
                 prob.q[: 3 * k],
                 prob.mu[:k],
-                prob.active[:k],
+                prob.active[:k] & (branch == i),  # the branch taken: prob.active[:k]
                 max_iters=model.iterations,
                 tol=model.tolerance,
                 gamma0=prob.gamma0[:k],
@@ -388,15 +413,13 @@ def _solve(model: Model, prob: ContactProblem, sizes: tuple[int, ...] | None = N
 
         return f
 
-    # Slots up to the last active one (a prefix however the buffer was filled).
-    n = jnp.max(jnp.where(prob.active, jnp.arange(1, C + 1), 0))
-    branch = jnp.sum(n > jnp.asarray(sizes[:-1]))
-    sol = jax.lax.switch(branch, [leading(k) for k in sizes], None) if len(sizes) > 1 else leading(C)(None)
+    branches = [leading(i, k) for i, k in enumerate(sizes)]
+    sol = jax.lax.switch(branch, branches, None) if len(sizes) > 1 else branches[0](None)
     Gamma = jnp.einsum("cij,cj->ci", prob.R, sol.gamma) * prob.active[:, None]  # on socket, world
     return sol, Gamma
 
 
-def step(model: Model, prepared: Prepared, state: State, control: jax.Array):
+def step(model: Model, prepared: Prepared, state: State, control: jax.Array, rolled: bool | None = None):
     """Advance one time step.
 
     Args:
@@ -404,12 +427,23 @@ def step(model: Model, prepared: Prepared, state: State, control: jax.Array):
         prepared: ``prepare(model, params)`` (cast to the rollout dtype).
         state: current :class:`State`.
         control: (3,) desired plug centre at the end of the step, mm.
+        rolled: how the predict-correct second solve is compiled (the same results either
+            way: bit for bit in the steps that are not corrected, to round-off in the others).
+            ``True``: a two-pass ``lax.scan`` around one copy of the contact stage (problem,
+            solver, path check); the program compiles ~1 s faster (one copy of the solver
+            fewer), but reverse-mode derivatives through the loop cost ~20 % more (JAX stores
+            and zero-fills the skipped second pass's residuals). ``False``: the two passes
+            written out. ``None`` (default): ``False`` when the inputs are being
+            differentiated (JAX's JVP or linearize tracers), else ``True``. ``rollout`` makes
+            that choice from its own inputs (inside its compiled scan it cannot see them).
 
     Returns:
         ``(next_state, StepOutput)``.
     """
     if jnp.shape(control) != (3,):
         raise ValueError(f"control must be (3,), the desired plug centre in mm; got shape {jnp.shape(control)}")
+    if rolled is None:
+        rolled = not _differentiated(model, prepared, state, control)
     op = prepared.op
     T = op.dt
     dtype = state.x.dtype
@@ -433,39 +467,62 @@ def step(model: Model, prepared: Prepared, state: State, control: jax.Array):
     # 2.-3. Collision and the cone problem: candidates within the margin now.
     y = model.sample_rest + sock.sample_disp(x)
     phi_now, _ = _plug_sdf(model, y - state.plug)
-    prob = _contact_problem(model, prepared, state, vbar_free, vp_free, s_p, y, phi_now, state.gamma)
-    sol, Gamma = _solve(model, prob)
 
-    # Predict-correct: where the solved motion would carry points that were not in the buffer
-    # into the plug (a stiff, light socket released by the plug springs back through a large gap
-    # within one step), add them and solve again, warm-started.
-    # The path within the step is straight (x + s T vbar), but a released stiff socket can move
-    # farther than the plug is thick in one step (PMI's undamped high modes flip sign), so the
-    # path is checked at several points, not only at its end.
-    dy = T * sock.sample_disp(vbar_free + sock.contact_velocity(op, prob.A, Gamma))
-    dp = T * (vp_free - s_p * jnp.sum(Gamma, axis=0))
-    phi_end = jnp.min(
-        jnp.stack([_plug_sdf(model, y + f * dy - state.plug - f * dp)[0] for f in _PATH_CHECKS]), axis=0
-    )
-    in_buffer = jnp.zeros(phi_now.shape, bool).at[prob.idx].set(prob.active)
-    fresh = (phi_end < -0.5 * model.margin) & ~in_buffer
+    def attempt(score, warm, second):
+        prob = _contact_problem(model, prepared, state, vbar_free, vp_free, s_p, y, score, warm)
+        sol, Gamma = _solve(model, prob, whole=second)
+        # Predict-correct: where the solved motion would carry points that were not in the
+        # buffer into the plug (a stiff, light socket released by the plug springs back through
+        # a large gap within one step), add them and solve again, warm-started. The path within
+        # the step is straight (x + s T vbar), but a released stiff socket can move farther than
+        # the plug is thick in one step (PMI's undamped high modes flip sign), so the path is
+        # checked at several points, not only at its end.
+        dv = sock.contact_velocity(op, prob.A, Gamma)
+        dy = T * sock.sample_disp(vbar_free + dv)
+        dp = T * (vp_free - s_p * jnp.sum(Gamma, axis=0))
+        phi_end = jnp.min(
+            jnp.stack([_plug_sdf(model, y + f * dy - state.plug - f * dp)[0] for f in _PATH_CHECKS]), axis=0
+        )
+        in_buffer = jnp.zeros(phi_now.shape, bool).at[prob.idx].set(prob.active)
+        fresh = (phi_end < -0.5 * model.margin) & ~in_buffer
+        p = prob
+        return _Pass(dv, Gamma, sol, p.idx, p.active, p.points, p.overflow, phi_end, fresh, jnp.asarray(second))
 
-    def correct(_):
-        warm = state.gamma.at[prob.idx].set(sol.gamma * prob.active[:, None])
-        score = jnp.where(fresh, phi_end, phi_now)
-        prob2 = _contact_problem(model, prepared, state, vbar_free, vp_free, s_p, y, score, warm)
-        # The second solve is rare (a few steps of a rollout): one size, the whole buffer, so
-        # that it adds one compiled copy of the solver, not one per size. A two-pass scan around
-        # a single copy (tried) compiled ~0.5 s faster but ran 10-15 % slower forward and in
-        # reverse mode (its carry holds the whole problem, the dense contact operator included).
-        return (prob2, *_solve(model, prob2, sizes=(prob2.mu.shape[0],)))
+    def again(p, second=True):
+        """The second solve after ``p``: its fresh points added, warm-started from its forces
+        (with ``second`` traced and false: the first solve)."""
+        score = jnp.where(second & p.fresh, p.phi_end, phi_now)
+        warm = jnp.where(second, state.gamma.at[p.idx].set(p.sol.gamma * p.active[:, None]), state.gamma)
+        return attempt(score, warm, second)
 
-    corrected = jnp.any(fresh)
-    prob, sol, Gamma = jax.lax.cond(corrected, correct, lambda _: (prob, sol, Gamma), None)
-    idx, A, active = prob.idx, prob.A, prob.active
+    if rolled:
+        # The second pass runs when the first found fresh points (a lax.cond). A reverse-
+        # differentiable loop, unlike lax.while_loop: its second pass is skipped, not absent.
+        def one_pass(p, k):
+            return jax.lax.cond((k == 0) | jnp.any(p.fresh), lambda p: again(p, k > 0), lambda p: p, p), None
+
+        C, P = model.capacity, phi_now.shape[0]
+        zero = jnp.zeros((), dtype)
+        nothing = _Pass(
+            dv=jnp.zeros_like(vbar_free),
+            Gamma=jnp.zeros((C, 3), dtype),
+            sol=ContactSolution(jnp.zeros((C, 3), dtype), jnp.zeros((), jnp.int32), zero, jnp.zeros((), bool)),
+            idx=jnp.zeros((C,), jnp.int32),
+            active=jnp.zeros((C,), bool),
+            points=jnp.zeros((C, 3), dtype),
+            overflow=jnp.zeros((), int),  # a count (jnp.sum of bools): the default int
+            phi_end=jnp.zeros((P,), dtype),
+            fresh=jnp.zeros((P,), bool),
+            corrected=jnp.zeros((), bool),
+        )
+        res, _ = jax.lax.scan(one_pass, nothing, jnp.arange(2))
+    else:
+        first = attempt(phi_now, state.gamma, False)
+        res = jax.lax.cond(jnp.any(first.fresh), again, lambda p: p, first)
+    Gamma, sol, idx, active = res.Gamma, res.sol, res.idx, res.active
 
     # 4. Update.
-    vbar = vbar_free + sock.contact_velocity(op, A, Gamma)
+    vbar = vbar_free + res.dv
     x_new = x + T * vbar
     v_new = 2.0 * vbar - v
     total = jnp.sum(Gamma, axis=0)
@@ -489,13 +546,13 @@ def step(model: Model, prepared: Prepared, state: State, control: jax.Array):
         work=T * jnp.sum(Gamma * vbar_p),
         plug=plug_new,
         contact_force=Gamma,
-        contact_point=prob.points,
+        contact_point=res.points,
         contact_active=active,
         contact_index=idx,
-        overflow=prob.overflow,
+        overflow=res.overflow,
         residual=sol.residual,
         iterations=sol.iterations,
-        corrected=corrected,
+        corrected=res.corrected,
     )
     gamma = jnp.zeros_like(state.gamma).at[idx].set(sol.gamma * active[:, None])
     new = State(x_new, v_new, plug_new, vbar_p * 2 - state.plug_vel, control, state.t + T, gamma)
@@ -512,15 +569,25 @@ def _cast(tree, dtype):
 
 
 @eqx.filter_jit
-def _scan(model, prepared, state, controls, keep_x):
+def _scan(model, prepared, state, controls, keep_x, rolled=True):
     # Checkpointed: reverse mode keeps only each step's state and recomputes the step (its
     # contact problems) on the way back (docs/differentiation.md); forward runs are unaffected.
     @jax.checkpoint
     def body(s, c):
-        s, out = step(model, prepared, s, c)
+        s, out = step(model, prepared, s, c, rolled)
         return s, (out, s.x if keep_x else None)
 
     return jax.lax.scan(body, state, controls)
+
+
+def _differentiated(*trees) -> bool:
+    """Whether any array of ``trees`` is being differentiated: a tracer of JAX's forward mode
+    (``jvp``) or of its linearisation (``grad``, ``vjp``, ``linearize``). Under ``jit`` or
+    ``vmap`` alone, no. Inside a function that JAX differentiates after tracing it
+    (``grad(jit(f))``), the arrays are ``jit``'s tracers: no, so such code takes the rolled
+    step, whose results are the same and whose reverse mode is slower (see ``step``)."""
+    names = ("JVPTracer", "LinearizeTracer")
+    return any(type(a).__name__ in names for a in jax.tree_util.tree_leaves(trees))
 
 
 def _check_params(params: Params) -> None:
@@ -611,8 +678,10 @@ def rollout(
     state = init_state(model, dtype)
     # The plug starts moving with the drive (no start-up transient in the virtual coupling).
     state = eqx.tree_at(lambda s: s.plug_vel, state, (controls[0] - state.plug) / jnp.asarray(model.dt, dtype))
+    # The predict-correct loop rolled (compiles faster) unless differentiated (see ``step``).
+    rolled = not _differentiated(prepared, m, controls)
     if not progress:
-        _, (out, xs) = _scan(m, prepared, state, controls, keep_x)
+        _, (out, xs) = _scan(m, prepared, state, controls, keep_x, rolled)
         return _result(out, xs, model, dtype)
     from tqdm.auto import tqdm
 
@@ -624,7 +693,7 @@ def rollout(
             if c.shape[0] < chunk:
                 c = jnp.concatenate([c, jnp.repeat(c[-1:], chunk - c.shape[0], 0)])
             n_real = min(chunk, controls.shape[0] - i)
-            state_next, (out, xs) = _scan(m, prepared, state, c, keep_x)
+            state_next, (out, xs) = _scan(m, prepared, state, c, keep_x, rolled)
             if n_real < chunk:  # padded tail: keep only the real steps
                 out = jax.tree_util.tree_map(lambda a: a[:n_real], out)
                 xs = None if xs is None else xs[:n_real]

@@ -7,6 +7,7 @@ and rolled out once per module.
 import json
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -194,7 +195,17 @@ def test_cli_simulate_writes_outputs(tmp_path, capsys):
     assert csv.shape[0] == summary["steps"]
 
 
-def test_predict_correct_keeps_released_points_out_of_the_plug():
+@pytest.fixture(scope="module")
+def released():
+    """A stiff, light socket (P1, 2 mm, E = 2e4 MPa) that the plug releases: a few steps of its
+    rollout are solved twice (predict-correct)."""
+    scene = jsnap.load_scene().replace(
+        {"solver.mesh_size": 2.0, "solver.element": "P1", "material.youngs_modulus": 2e4}
+    )
+    return jsnap.build(scene)
+
+
+def test_predict_correct_keeps_released_points_out_of_the_plug(released):
     """A stiff, light socket released by the plug springs back through the gap within a step;
     the predict-correct pass solves those steps again with the points it would carry into the
     plug, so that no candidate point ends a step deeper in the plug than the contact margin.
@@ -202,12 +213,47 @@ def test_predict_correct_keeps_released_points_out_of_the_plug():
     """
     from jsnap._sim import _plug_sdf
 
-    scene = jsnap.load_scene().replace(
-        {"solver.mesh_size": 2.0, "solver.element": "P1", "material.youngs_modulus": 2e4}
-    )
-    model = jsnap.build(scene)
+    model = released
     res = jsnap.rollout(model, keep_x=True)
     assert 0 < int(np.asarray(res.corrected).sum()) < 20
     y = model.sample_rest[None] + jax.vmap(model.socket.sample_disp)(res.x)
     phi = jax.vmap(lambda yy, p: _plug_sdf(model, yy - p)[0])(y, res.plug)
     assert float(phi.min()) > -model.margin
+
+
+def test_differentiated_inputs_are_recognised():
+    """``step``'s rolled predict-correct loop is chosen unless JAX differentiates the inputs."""
+    from jsnap._sim import _differentiated
+
+    seen = []
+
+    def f(x):
+        seen.append(_differentiated({"a": x}))
+        return x * 2.0
+
+    x = jnp.ones(2)
+    jax.jvp(f, (x,), (x,))
+    jax.grad(lambda x: f(x).sum())(x)
+    jax.vjp(f, x)
+    assert seen == [True, True, True]
+    jax.jit(f)(x)
+    jax.vmap(f)(x)
+    f(x)
+    assert seen[3:] == [False, False, False]
+
+
+def test_rolled_and_unrolled_predict_correct_agree(released):
+    """The rolled two-pass loop (a plain rollout) and the passes written out (what a
+    differentiated rollout runs: here the primal of a jvp) give the same forces, the corrected
+    steps included: the same equations, compiled apart (float64, to round-off)."""
+    model = released
+    plain = jsnap.rollout(model, dtype="float64")
+    assert int(np.asarray(plain.corrected).sum()) > 0
+
+    def force(E):
+        return jsnap.rollout(model, model.params.replace(E=E), dtype="float64").insertion_force
+
+    F, dF = jax.jvp(force, (model.params.E,), (jnp.ones_like(model.params.E),))
+    F0 = np.asarray(plain.insertion_force)
+    assert np.abs(np.asarray(F) - F0).max() <= 1e-9 * np.abs(F0).max()
+    assert np.all(np.isfinite(np.asarray(dF)))
