@@ -434,8 +434,11 @@ def step(model: Model, prepared: Prepared, state: State, control: jax.Array, rol
             fewer), but reverse-mode derivatives through the loop cost ~20 % more (JAX stores
             and zero-fills the skipped second pass's residuals). ``False``: the two passes
             written out. ``None`` (default): ``False`` when the inputs are being
-            differentiated (JAX's JVP or linearize tracers), else ``True``. ``rollout`` makes
-            that choice from its own inputs (inside its compiled scan it cannot see them).
+            differentiated or batched (JAX's JVP, linearize or ``vmap`` tracers: under
+            ``vmap`` both passes run for every lane, and the rolled second pass's path check,
+            four more SDF queries, made batched neural-SDF rollouts slower), else ``True``.
+            ``rollout`` makes that choice from its own inputs (inside its compiled scan it
+            cannot see them).
 
     Returns:
         ``(next_state, StepOutput)``.
@@ -581,12 +584,13 @@ def _scan(model, prepared, state, controls, keep_x, rolled=True):
 
 
 def _differentiated(*trees) -> bool:
-    """Whether any array of ``trees`` is being differentiated: a tracer of JAX's forward mode
-    (``jvp``) or of its linearisation (``grad``, ``vjp``, ``linearize``). Under ``jit`` or
-    ``vmap`` alone, no. Inside a function that JAX differentiates after tracing it
-    (``grad(jit(f))``), the arrays are ``jit``'s tracers: no, so such code takes the rolled
-    step, whose results are the same and whose reverse mode is slower (see ``step``)."""
-    names = ("JVPTracer", "LinearizeTracer")
+    """Whether any array of ``trees`` is being differentiated or batched: a tracer of JAX's
+    forward mode (``jvp``), of its linearisation (``grad``, ``vjp``, ``linearize``) or of
+    ``vmap``; then ``step`` writes its two passes out (see there). Under ``jit`` alone, no.
+    Inside a function that JAX transforms after tracing it (``grad(jit(f))``, ``vmap(jit(f))``),
+    the arrays are ``jit``'s tracers: no, so such code takes the rolled step, whose results are
+    the same and which is slower there."""
+    names = ("JVPTracer", "LinearizeTracer", "BatchTracer")
     return any(type(a).__name__ in names for a in jax.tree_util.tree_leaves(trees))
 
 
@@ -678,7 +682,7 @@ def rollout(
     state = init_state(model, dtype)
     # The plug starts moving with the drive (no start-up transient in the virtual coupling).
     state = eqx.tree_at(lambda s: s.plug_vel, state, (controls[0] - state.plug) / jnp.asarray(model.dt, dtype))
-    # The predict-correct loop rolled (compiles faster) unless differentiated (see ``step``).
+    # The predict-correct loop rolled (compiles faster) unless differentiated or batched (``step``).
     rolled = not _differentiated(prepared, m, controls)
     if not progress:
         _, (out, xs) = _scan(m, prepared, state, controls, keep_x, rolled)

@@ -222,7 +222,7 @@ def test_predict_correct_keeps_released_points_out_of_the_plug(released):
 
 
 def test_differentiated_inputs_are_recognised():
-    """``step``'s rolled predict-correct loop is chosen unless JAX differentiates the inputs."""
+    """``step``'s rolled predict-correct loop is chosen unless JAX differentiates or batches the inputs."""
     from jsnap._sim import _differentiated
 
     seen = []
@@ -235,11 +235,11 @@ def test_differentiated_inputs_are_recognised():
     jax.jvp(f, (x,), (x,))
     jax.grad(lambda x: f(x).sum())(x)
     jax.vjp(f, x)
-    assert seen == [True, True, True]
-    jax.jit(f)(x)
     jax.vmap(f)(x)
+    assert seen == [True, True, True, True]
+    jax.jit(f)(x)
     f(x)
-    assert seen[3:] == [False, False, False]
+    assert seen[4:] == [False, False]
 
 
 def test_rolled_and_unrolled_predict_correct_agree(released):
