@@ -447,7 +447,7 @@ def step(model: Model, prepared: Prepared, state: State, control: jax.Array, rol
     if jnp.shape(control) != (3,):
         raise ValueError(f"control must be (3,), the desired plug centre in mm; got shape {jnp.shape(control)}")
     if rolled is None:
-        rolled = not _differentiated(model, prepared, state, control)
+        rolled = not _differentiated_or_batched(model, prepared, state, control)
     op = prepared.op
     T = op.dt
     dtype = state.x.dtype
@@ -489,8 +489,8 @@ def step(model: Model, prepared: Prepared, state: State, control: jax.Array, rol
         )
         in_buffer = jnp.zeros(phi_now.shape, bool).at[prob.idx].set(prob.active)
         fresh = (phi_end < -0.5 * model.margin) & ~in_buffer
-        p = prob
-        return _Pass(dv, Gamma, sol, p.idx, p.active, p.points, p.overflow, phi_end, fresh, jnp.asarray(second))
+        slots = (prob.idx, prob.active, prob.points, prob.overflow)
+        return _Pass(dv, Gamma, sol, *slots, phi_end, fresh, jnp.asarray(second))
 
     def again(p, second=True):
         """The second solve after ``p``: its fresh points added, warm-started from its forces
@@ -584,7 +584,7 @@ def _scan(model, prepared, state, controls, keep_x, rolled=True):
     return jax.lax.scan(body, state, controls)
 
 
-def _differentiated(*trees) -> bool:
+def _differentiated_or_batched(*trees) -> bool:
     """Whether any array of ``trees`` is being differentiated or batched: a tracer of JAX's
     forward mode (``jvp``), of its linearisation (``grad``, ``vjp``, ``linearize``) or of
     ``vmap``; then ``step`` writes its two passes out (see there). Under ``jit`` alone, no.
@@ -684,7 +684,7 @@ def rollout(
     # The plug starts moving with the drive (no start-up transient in the virtual coupling).
     state = eqx.tree_at(lambda s: s.plug_vel, state, (controls[0] - state.plug) / jnp.asarray(model.dt, dtype))
     # The predict-correct loop rolled (compiles faster) unless differentiated or batched (``step``).
-    rolled = not _differentiated(prepared, m, controls)
+    rolled = not _differentiated_or_batched(prepared, m, controls)
     if not progress:
         _, (out, xs) = _scan(m, prepared, state, controls, keep_x, rolled)
         return _result(out, xs, model, dtype)

@@ -221,14 +221,14 @@ def test_predict_correct_keeps_released_points_out_of_the_plug(released):
     assert float(phi.min()) > -model.margin
 
 
-def test_differentiated_inputs_are_recognised():
+def test_differentiated_or_batched_inputs_are_recognised():
     """``step``'s rolled predict-correct loop is chosen unless JAX differentiates or batches the inputs."""
-    from jsnap._sim import _differentiated
+    from jsnap._sim import _differentiated_or_batched
 
     seen = []
 
     def f(x):
-        seen.append(_differentiated({"a": x}))
+        seen.append(_differentiated_or_batched({"a": x}))
         return x * 2.0
 
     x = jnp.ones(2)
