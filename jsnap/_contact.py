@@ -22,6 +22,9 @@ Solvers:
   adaptive restart of O'Donoghue & Candès, fixed step ``1/L``. The default.
 - ``solve_admm``: ADMM with ``(W + ρI)⁻¹`` formed once per solve; fewer iterations than APGD on
   the ill-conditioned line contacts of the scenes (``contact.solver = "admm"``, opt-in).
+- ``solve_spg``: spectral projected gradient (Barzilai–Borwein steps, non-monotone line search);
+  fewer iterations than APGD on the same problems at the same cost per iteration
+  (``contact.solver = "spg"``, opt-in; its derivatives are taken implicitly).
 - ``solve_pgs``: projected block Gauss–Seidel, the classic baseline. It stalls on the
   ill-conditioned symmetric squeeze (a light plug between two hooks); it is kept to show that.
 
@@ -71,6 +74,11 @@ _UNROLL = 2
 # and 1.8 took alike, both fewer than α = 1 (plain ADMM).
 _ADMM_RHO = 0.2
 _ADMM_RELAX = 1.6
+# SPG's non-monotone memory (objective values the line search compares against), sufficient
+# decrease constant and largest step (times 1/L; the BB step is ≥ 1/L by construction).
+_SPG_MEMORY = 20
+_SPG_DECREASE = 1e-4
+_SPG_MAX_STEP = 1e6
 
 __all__ = [
     "ContactSolution",
@@ -82,6 +90,7 @@ __all__ = [
     "solve_admm",
     "solve_apgd",
     "solve_pgs",
+    "solve_spg",
     "symmetric_squeeze_problem",
 ]
 
@@ -708,6 +717,93 @@ def solve_admm(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=Fals
     def step(s):
         z, u = update(s.z, s.u)
         return _ADMMCarry(z=z, u=u, **_best_so_far(s, z, residual(z, mv(Wc, z)), tol))
+
+    return _finish(step, init, tol, max_iters, differentiable, return_trace)
+
+
+# ----------------------------------------------------------------------------------------------
+# SPG
+
+
+class _SPGCarry(NamedTuple):
+    x: jax.Array  # current iterate (on the cones), (3, C) component-major
+    Wx: jax.Array
+    f: jax.Array  # objective ½ xᵀWx + qᵀx, kept by its exact quadratic update
+    alpha: jax.Array  # spectral step for the next iteration
+    hist: jax.Array  # (_SPG_MEMORY,) recent objective values (the non-monotone reference)
+    best: jax.Array
+    best_r: jax.Array
+    it: jax.Array
+    done: jax.Array
+
+
+def solve_spg(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=False, differentiable=True):
+    """Solve the contact problem by spectral projected gradient (Birgin, Martínez & Raydan,
+    SIAM J. Optim. 2000, "SPG2"): a projected-gradient direction with the Barzilai–Borwein step,
+    made globally convergent by a non-monotone line search (Grippo–Lampariello–Lucidi: sufficient
+    decrease against the largest of the last ``_SPG_MEMORY`` objective values).
+
+    One iteration, from ``γ`` on the cones with gradient ``g = Wγ + q``:
+
+        d  = proj_F(γ − α g) − γ                      (a feasible descent direction)
+        λ  = 1 if f(γ + d) ≤ max(recent f) + 1e-4 gᵀd, else the exact line minimum
+             min(1, −gᵀd / dᵀWd)                      (f is quadratic: no search loop)
+        γ ← γ + λ d                                   (on the cones: a convex combination)
+        α ← dᵀd / dᵀWd                                (BB1, the inverse Rayleigh quotient of d)
+
+    One matvec per iteration (``W d``; ``Wγ`` and ``f`` follow by linearity), as APGD. The BB step
+    is the inverse of W's curvature along the last step, so it ranges over W's spectrum: long steps
+    where the last move was along the soft directions that a fixed step ``1/L`` crawls along (the
+    force distribution along a line contact, eigenvalues down to 1e-7 L). On the recorded solves
+    of the 1344-dof reduced scene with light contact (float64, from the recorded warm starts, to
+    the 1e-6 residual) SPG takes 67 iterations at the median and 120 on average against APGD's
+    261 and 260 (docs/contact.md). The residual, ``tol``, the returned iterate (the best by the
+    residual) and the loop structure are APGD's; so are the arguments and the result.
+    """
+    c, Wm, qm, mu, mask, m3, tol, L, qmax = _setup(W, q, mu, mask, max_iters, tol, gamma0)
+    dtype = Wm.dtype
+    o = _ops(c, mu, m3, qm, L, qmax, dtype)
+    cm, proj, residual, qc = o.cm, o.proj, o.residual, o.qc
+    Wc = o.to_cm(Wm)
+
+    def matvec(v):
+        return o.mv(Wc, v)
+
+    x0 = cm(_initial(gamma0, c, mu, m3, dtype))
+    Wx0 = matvec(x0)
+    r0 = residual(x0, Wx0)
+    f0 = jnp.sum(x0 * (0.5 * Wx0 + qc))
+    a_min, a_max = 1.0 / L, _SPG_MAX_STEP / L
+    init = _SPGCarry(
+        x=x0,
+        Wx=Wx0,
+        f=f0,
+        alpha=a_min,
+        hist=jnp.full((_SPG_MEMORY,), f0),
+        best=x0,
+        best_r=r0,
+        it=jnp.asarray(0, jnp.int32),
+        done=r0 <= tol,
+    )
+
+    def step(s):
+        g = s.Wx + qc
+        d = proj(s.x - s.alpha * g) - s.x
+        Wd = matvec(d)
+        gd, dWd, dd = jnp.sum(g * d), jnp.sum(d * Wd), jnp.sum(d * d)
+        curved = dWd > 0
+        full = s.f + gd + 0.5 * dWd <= jnp.max(s.hist) + _SPG_DECREASE * gd
+        lam = jnp.where(full | ~curved, 1.0, jnp.clip(-gd / jnp.where(curved, dWd, 1.0), 0.0, 1.0))
+        x_new = s.x + lam * d
+        Wx_new = s.Wx + lam * Wd
+        f_new = s.f + lam * gd + 0.5 * lam * lam * dWd
+        alpha = jnp.clip(jnp.where(curved, dd / jnp.where(curved, dWd, 1.0), a_max), a_min, a_max)
+        # A select, not a scatter: XLA:CPU compiles the loop into one kernel only without scatters.
+        hist = jnp.where(jnp.arange(_SPG_MEMORY) == s.it % _SPG_MEMORY, f_new, s.hist)
+        r_new = residual(x_new, Wx_new)
+        return _SPGCarry(
+            x=x_new, Wx=Wx_new, f=f_new, alpha=alpha, hist=hist, **_best_so_far(s, x_new, r_new, tol)
+        )
 
     return _finish(step, init, tol, max_iters, differentiable, return_trace)
 

@@ -56,7 +56,8 @@ def implicit_solver(solve):
     """Wrap a contact solver so that its solution is differentiated implicitly.
 
     Args:
-        solve: ``solve_apgd``, ``solve_admm`` or ``solve_pgs`` (same signature as returned function).
+        solve: ``solve_apgd``, ``solve_admm``, ``solve_spg`` or ``solve_pgs`` (same signature as the
+            returned function).
 
     Returns:
         ``solve_implicit(W, q, mu, mask, *, max_iters, tol, gamma0=None) -> ContactSolution``:

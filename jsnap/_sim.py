@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jsnap._contact import ContactSolution, solve_admm, solve_apgd, solve_pgs
+from jsnap._contact import ContactSolution, solve_admm, solve_apgd, solve_pgs, solve_spg
 from jsnap._implicit import implicit_solver
 from jsnap._model import Model, Params
 from jsnap._neural_sdf import neural_sdf_and_normal
@@ -413,7 +413,7 @@ def _solve(model: Model, prob: ContactProblem, whole=False):
     ``benchmarks/throughput.py`` side by side with the code before: 337 against 276
     scene-steps/s at batch 1, 373 against 354 at batch 16 (docs/contact.md).
     """
-    solve = {"apgd": solve_apgd, "admm": solve_admm, "pgs": solve_pgs}[model.contact_solver]
+    solve = {"apgd": solve_apgd, "admm": solve_admm, "spg": solve_spg, "pgs": solve_pgs}[model.contact_solver]
     if model.contact_gradient == "implicit":  # derivatives of the solution, not the iterations
         solve = implicit_solver(solve)
     C = prob.mu.shape[0]

@@ -25,6 +25,10 @@ def test_default_scene_loads_with_design_values():
         ({"solver.element": "P3"}, r"solver\.element = 'P3'"),
         ({"solver.method": "sparse"}, r"solver\.method = 'sparse': must be one of full, modal, segm"),
         ({"contact.capacity": 2.5}, r"contact\.capacity = 2\.5: must be an integer"),
+        (
+            {"contact.solver": "spg", "contact.gradient": "unrolled"},
+            r"contact\.gradient = 'unrolled' with contact\.solver = 'spg'",
+        ),
     ],
 )
 def test_bad_values_name_the_key(change, match):

@@ -94,18 +94,38 @@ def test_curve_phases(default_coarse):
     assert int(np.asarray(res.overflow).max()) == 0
 
 
-def test_admm_converges_where_apgd_hits_its_cap():
+@pytest.fixture(scope="module")
+def tight_coarse():
+    """The default coarse scene with APGD solved to 1e-10 (≤ 20000 iterations)."""
+    return _run({"contact.iterations": 20000, "contact.tolerance": 1e-10})[2]
+
+
+def test_admm_converges_where_apgd_hits_its_cap(default_coarse, tight_coarse):
     """ADMM (``contact.solver = "admm"``) at the scene's settings (≤ 500 iterations, residual
     1e-6) against APGD solved to 1e-10 (≤ 20000 iterations): the same insertion force curve.
     APGD at the scene's settings stops at its cap in 41 of the 117 steps (measured; RMSE 0.30 %
     of the peak from the tight curve), ADMM in none (0.055 %); the two tight curves agree to
     5.5e-8 of the peak."""
     _, model, res = _run({"contact.solver": "admm"})
-    _, _, tight = _run({"contact.iterations": 20000, "contact.tolerance": 1e-10})
     assert int(np.asarray(res.iterations).max()) < model.iterations
-    assert int(np.asarray(tight.iterations).max()) < 20000
-    F, ref = np.asarray(res.insertion_force), np.asarray(tight.insertion_force)
+    assert int(np.asarray(tight_coarse.iterations).max()) < 20000
+    F, ref = np.asarray(res.insertion_force), np.asarray(tight_coarse.insertion_force)
     assert np.sqrt(np.mean((F - ref) ** 2)) <= 2e-3 * ref.max()
+
+
+def test_spg_takes_fewer_iterations_to_apgds_accuracy(default_coarse, tight_coarse):
+    """SPG (``contact.solver = "spg"``) at the scene's settings against the same tight curve:
+    measured, it stops at the cap in 5 of the 117 steps (APGD 41), takes 102 iterations per
+    step on average (APGD 328), and lands as close to the tight curve as APGD (RMSE 0.30 % of the
+    peak for both; its largest errors sit at a capped step and at one that met the 1e-6 residual
+    with its soft modes unresolved, see ``kkt_residual``)."""
+    _, model, res = _run({"contact.solver": "spg"})
+    apgd = default_coarse[2]
+    capped = [int(np.sum(np.asarray(r.iterations) >= model.iterations)) for r in (res, apgd)]
+    assert capped[0] <= capped[1] // 4
+    assert np.mean(np.asarray(res.iterations)) < 0.5 * np.mean(np.asarray(apgd.iterations))
+    F, ref = np.asarray(res.insertion_force), np.asarray(tight_coarse.insertion_force)
+    assert np.sqrt(np.mean((F - ref) ** 2)) <= 5e-3 * ref.max()
 
 
 def test_impedance_control_tracks_position_control(default_coarse):
