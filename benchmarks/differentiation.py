@@ -117,6 +117,8 @@ def cost(
     original = _sim._scan
     if not checkpoint:
         _sim._scan = eqx.filter_jit(_scan_plain)
+        # rollout's compiled whole (_sim._whole) looks _scan up when it is traced: no cached trace
+        jax.clear_caches()
     try:
         vg = jax.jit(jax.value_and_grad(loss))
         t0 = time.perf_counter()
@@ -161,7 +163,9 @@ def cost(
                 scene_run = scene.replace(TIGHT) if tight else scene
                 keep.update(vg=compiled, f=f, x0=x0, arrays=arrays, scene=scene_run)
     finally:
-        _sim._scan = original
+        if _sim._scan is not original:
+            _sim._scan = original
+            jax.clear_caches()
     print({k: v for k, v in row.items() if k != "grad"}, flush=True)
     return row
 

@@ -719,13 +719,19 @@ class ReducedSocket(ContactRows):
         res = rhs - op.S_el @ vbar - op.sc * (Dg.T @ (Dg @ vbar))
         return vbar + op.S_inv @ res
 
-    def contact_operator(self, op: ReducedOperator, idx):
-        """``A = J S^-1`` (C, 3, r), interpolated from the contact nodes' precomputed
-        ``J_c S^-1``, and ``W = A J'`` (C, 3, C, 3): O(C k r + (3C)^2 r) per step, no (r, r)
-        product (k interpolating nodes per point)."""
+    def contact_factors(self, op: ReducedOperator, idx):
+        """``A = J S^-1`` and ``J`` (C, 3, r) at the selected points, interpolated from the
+        contact nodes' precomputed ``J_c S^-1`` and ``J_c``: the Delassus block is ``A J'``.
+        O(C k r) per step (k interpolating nodes per point)."""
         w, nodes = self.sample_weights[idx], self.sample_nodes[idx]
         A = jnp.einsum("ck,ckdr->cdr", w, op.NS[nodes])
         J = jnp.einsum("ck,ckdr->cdr", w, self.node_rows[nodes])
+        return A, J
+
+    def contact_operator(self, op: ReducedOperator, idx):
+        """``A = J S^-1`` (C, 3, r) and ``W = A J'`` (C, 3, C, 3): O(C k r + (3C)^2 r) per step,
+        no (r, r) product."""
+        A, J = self.contact_factors(op, idx)
         return A, jnp.einsum("cdr,efr->cdef", A, J)
 
     def contact_velocity(self, op: ReducedOperator, A, force):

@@ -269,6 +269,39 @@ def _rotate_blocks(R, W):
     return sum(T[..., f, None] * R[None, None, :, f, :] for f in range(3))
 
 
+def _rotate_rows(R, A):
+    """``einsum("cdi,cdr->cir", R, A)``: the (C, 3, r) rows ``A`` in the frames ``R`` (C, 3, 3),
+    as broadcast products summed over 3 terms (not batched 3 x 3 dots, see ``_rotate_blocks``)."""
+    return sum(R[:, d, :, None] * A[:, d, None, :] for d in range(3))
+
+
+def _local_operator(sock, op, idx, R, s_p):
+    """``(A, W_loc)``: the socket's ``A`` (see ``_socket``) and the Delassus block with the plug's
+    mobility ``s_p`` (C, 3, C, 3) in the contact frames ``R``.
+
+    Where the socket gives its block as thin factors ``W = A J'`` (``contact_factors``: the
+    reduced socket, r ~ 50-170 columns), the factors are turned into the frames and multiplied,
+    with the plug's term ``s_p Rᵀ R`` as three more columns: ``W_loc = [R'A, s_p R'] [R'J, R']'``.
+    Turning the (C, 3, C, 3) block instead (``_rotate_blocks``: 2 x 3 multiply-adds over its
+    5184 entries at 24 slots) is heavy enough for XLA:CPU to split it across the cores, and that
+    cost ~30 µs per step of the 1344-dof reduced scene with light contact settings (measured
+    with it taken out: 73-75 against 101-103 µs per step without the solve, session 22); the
+    factors' turn is 2 x 3 multiply-adds over (C, 3, r) and runs as it is. The same block to
+    round-off: float64 rollouts of the reduced scenes take the same iterations in every step,
+    forces within 8e-12 of the peak on the default contact settings (position and impedance
+    control) and 9e-10 with the light ones, whose solves stop at their cap and carry round-off
+    further (session 22). Other sockets: their block, turned."""
+    if hasattr(sock, "contact_factors"):
+        A, J = sock.contact_factors(op, idx)
+        Rt = jnp.swapaxes(R, 1, 2)  # (C, 3, 3): Rt[c, i, d] = R[c, d, i]
+        left = jnp.concatenate([_rotate_rows(R, A), s_p * Rt], axis=-1)
+        right = jnp.concatenate([_rotate_rows(R, J), Rt], axis=-1)
+        return A, jnp.einsum("cir,ejr->ciej", left, right)
+    A, W = sock.contact_operator(op, idx)  # J S^-1 (C, 3, n); J S^-1 J' (C, 3, C, 3), world
+    W = W + s_p * jnp.eye(3, dtype=W.dtype)[None, :, None, :]
+    return A, _rotate_blocks(R, W)
+
+
 def _least_along_path(model: Model, points, like):
     """(P,) least plug signed distance of ``points(f)`` (P, 3), plug frame, over the fractions
     ``f`` of ``_PATH_CHECKS``: the predict-correct check of a solved step's straight path.
@@ -376,10 +409,9 @@ def _contact_problem(model: Model, prepared: Prepared, state: State, vbar_free, 
     normal = _contact_normal(stencil, n_plug, model.sample_corner[idx])
 
     # Delassus operator in contact frames.
-    A, W = sock.contact_operator(op, idx)  # J S^-1 (C, 3, n); J S^-1 J' (C, 3, C, 3), world
     R = _frames(normal)
-    W = W + s_p * jnp.eye(3, dtype=dtype)[None, :, None, :]
-    W_loc = _rotate_blocks(R, W).reshape(3 * C, 3 * C)
+    A, W_loc = _local_operator(sock, op, idx, R, s_p)
+    W_loc = W_loc.reshape(3 * C, 3 * C)
     W_loc = 0.5 * (W_loc + W_loc.T) + (model.compliance / T) * jnp.eye(3 * C, dtype=dtype)
     u_free = sock.point_velocity(vbar_free, idx) - vp_free
     q = jnp.einsum("cdi,cd->ci", R, u_free).at[:, 0].add(jnp.maximum(phi, 0) / T).reshape(-1)
@@ -695,20 +727,18 @@ def rollout(
             "rollout got both params and prepared: prepared = prepare(model, params) holds the "
             "parameters it was made from; pass one of them"
         )
-    prepared = _cast(prepared, dtype)
-    m = _cast(model, dtype)
     if controls is None:
         controls = model.trajectory()[1:]
     controls = _check_controls(controls)
-    controls = jnp.asarray(controls, dtype)
-    state = init_state(model, dtype)
-    # The plug starts moving with the drive (no start-up transient in the virtual coupling).
-    state = eqx.tree_at(lambda s: s.plug_vel, state, (controls[0] - state.plug) / jnp.asarray(model.dt, dtype))
     # The predict-correct loop rolled (compiles faster) unless differentiated or batched (``step``).
-    rolled = not _differentiated_or_batched(prepared, m, controls)
+    rolled = not _differentiated_or_batched(prepared, model, controls)
+    controls = jnp.asarray(controls, dtype)
+    state = _start(model, controls, dtype)
     if not progress:
-        _, (out, xs) = _scan(m, prepared, state, controls, keep_x, rolled)
+        out, xs = _whole(model, prepared, state, controls, keep_x, rolled)
         return _result(out, xs, model, dtype)
+    prepared = _cast(prepared, dtype)
+    m = _cast(model, dtype)
     from tqdm.auto import tqdm
 
     chunk = progress_chunk(controls.shape[0])
@@ -731,6 +761,28 @@ def rollout(
     out = jax.tree_util.tree_map(lambda *a: jnp.concatenate(a), *outs)
     xs = None if not keep_x else jnp.concatenate(xs_all)
     return _result(out, xs, model, dtype)
+
+
+def _start(model: Model, controls, dtype) -> State:
+    """The state a rollout starts from: at rest, the plug moving with the drive (no start-up
+    transient in the virtual coupling)."""
+    state = init_state(model, dtype)
+    return eqx.tree_at(lambda s: s.plug_vel, state, (controls[0] - state.plug) / jnp.asarray(model.dt, dtype))
+
+
+@eqx.filter_jit
+def _whole(model: Model, prepared: Prepared, state: State, controls, keep_x, rolled):
+    """``rollout`` without progress from ``state``: the casts to the rollout's dtype and the scan
+    in one compiled call. Done eagerly before the scan, the casts' hundreds of small operations
+    cost 3-5 ms per call with the rest of ``rollout``'s eager work (13-20 µs per step of the
+    default 233-step motion on the 1344-dof reduced scene, measured side by side with the scan
+    alone), a tenth of such a rollout. The result's assembly stays eager: compiled with the
+    scan, it changed how XLA compiled the step, and the plain rollout of a chaotic scene came
+    4e-6 of its peak away from the primal of its ``jvp`` (float64,
+    ``test_rolled_and_unrolled_predict_correct_agree``; bit for bit as it is)."""
+    dtype = controls.dtype
+    _, (out, xs) = _scan(_cast(model, dtype), _cast(prepared, dtype), state, controls, keep_x, rolled)
+    return out, xs
 
 
 def _result(out: StepOutput, xs, model: Model, dtype) -> Result:

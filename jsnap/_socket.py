@@ -11,7 +11,9 @@ or reduced coordinates otherwise):
   (the deformed socket normal, see ``_model._section_samples``);
 - ``contact_operator(op, idx)``: ``A = J S^-1`` (C, 3, n; or what stands for it, see
   ``contact_velocity``) and the Delassus block ``W = J S^-1 J'`` (C, 3, C, 3) for the selected
-  points;
+  points; a socket whose block is a product of two thin factors (the reduced one, ``W = A J'``
+  with r columns) may offer ``contact_factors(op, idx) -> (A, J)`` instead, and the step then
+  turns the factors into the contact frames, not the (C, 3, C, 3) block (``_sim``);
 - ``contact_velocity(op, A, force)``: ``A' force``, the midpoint velocity that forces (C, 3) at
   the selected points add;
 - ``point_velocity(vbar, idx)``: (C, 3) velocity ``J vbar`` of the selected points;
