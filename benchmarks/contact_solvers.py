@@ -1,18 +1,18 @@
-"""APGD against ADMM (``contact.solver``) in whole rollouts: iterations, steps stopped at the
-cap, time per step, and the force's distance from a tightly solved rollout.
+"""APGD against ADMM and SPG (``contact.solver``) in whole rollouts: iterations, steps stopped
+at the cap, time per step, and the force's distance from a tightly solved rollout.
 
     python benchmarks/contact_solvers.py
 
 The 1344-dof reduced scene (P2 1.6 mm, float32) with reduction_speed.py's ``light`` and
-``default`` contact settings, each solved by APGD and by ADMM. All four models are built and
+``default`` contact settings, each solved by APGD, ADMM and SPG. All six models are built and
 compiled first; then ``ROUNDS`` rounds each time every model (the median of ``REPEATS``
-rollouts in a ``lax.scan``, and one pass stepping from Python), so that the two solvers are
+rollouts in a ``lax.scan``, and one pass stepping from Python), so that the solvers are
 measured side by side on the same machine state. Each rollout's insertion force is compared
 with the same model rolled out in float64 with APGD solved to 1e-10 (≤ 20000 iterations): the
 curve the solve converges to. First, the contact problems of each configuration's APGD rollout
 are recorded as solved (float32, warm starts included; a ``jax.debug.callback``) and solved
-again in float64 to the 1e-6 residual by both solvers: iterations without the cap, and how far
-apart the two solutions' total normal forces are. Writes
+again in float64 to the 1e-6 residual by each solver: iterations without the cap, and how far
+each solution's total normal force is from APGD's. Writes
 benchmarks/results/contact_solvers.{json,png}.
 """
 
@@ -30,7 +30,7 @@ from _common import code_version, jitted_step
 
 import jsnap
 from jsnap import _sim
-from jsnap._contact import solve_admm, solve_apgd
+from jsnap._contact import solve_admm, solve_apgd, solve_spg
 
 OUT = Path(__file__).parent / "results"
 MESH = 1.6
@@ -38,9 +38,10 @@ CONFIGS = {
     "light": {"contact.width_spacing": 2.0, "contact.capacity": 24, "contact.iterations": 200},
     "default": {},
 }
-SOLVERS = ("apgd", "admm")
+SOLVERS = ("apgd", "admm", "spg")
+SOLVE = {"apgd": solve_apgd, "admm": solve_admm, "spg": solve_spg}
 TIGHT = {"contact.iterations": 20000, "contact.tolerance": 1e-10, "solver.dtype": "float64"}
-ROUNDS, REPEATS = 2, 5
+ROUNDS, REPEATS = 5, 5
 
 
 def _scene(config, changes):
@@ -70,7 +71,7 @@ def recorded_solves(config, tol=1e-6, cap=20000):
         jax.clear_caches()
     out = {"solves": len(recs), "tolerance": tol, "cap": cap}
     totals = {}
-    for name, solve in (("apgd", solve_apgd), ("admm", solve_admm)):
+    for name, solve in SOLVE.items():
         f = jax.jit(
             lambda W, q, mu, mask, g0, solve=solve: solve(
                 W, q, mu, mask, max_iters=cap, tol=tol, gamma0=g0, differentiable=False
@@ -90,7 +91,9 @@ def recorded_solves(config, tol=1e-6, cap=20000):
         }
         totals[name] = np.asarray(tot)
     scale = np.maximum(np.abs(totals["apgd"]), 1e-12)
-    out["max_total_normal_force_rel_diff"] = float(np.max(np.abs(totals["admm"] - totals["apgd"]) / scale))
+    out["max_total_normal_force_rel_diff"] = {
+        name: float(np.max(np.abs(totals[name] - totals["apgd"]) / scale)) for name in SOLVERS[1:]
+    }
     print(config, out, flush=True)
     return out
 
@@ -164,18 +167,20 @@ def main():
     by = {(row["config"], row["solver"]): row for row in rows}
     headline = {}
     for config in CONFIGS:
-        a, d = by[(config, "apgd")], by[(config, "admm")]
-        headline[config] = {
-            "scan_speedup": float(np.median(a["scan_us_per_step"]) / np.median(d["scan_us_per_step"])),
-            "python_speedup": float(np.median(a["python_us_per_step"]) / np.median(d["python_us_per_step"])),
-            "iterations_apgd": a["iterations_mean"],
-            "iterations_admm": d["iterations_mean"],
-            "capped_apgd": a["capped_steps"],
-            "capped_admm": d["capped_steps"],
-            "contact_steps": a["contact_steps"],
-            "rmse_apgd": a["rmse_vs_tight_rel"],
-            "rmse_admm": d["rmse_vs_tight_rel"],
-        }
+        a = by[(config, "apgd")]
+        headline[config] = {"contact_steps": a["contact_steps"]}
+        for solver in SOLVERS:
+            d = by[(config, solver)]
+            med = {k: (np.median(a[k]), np.median(d[k])) for k in ("scan_us_per_step", "python_us_per_step")}
+            headline[config][solver] = {
+                # APGD's time over this solver's (medians): > 1 is faster than APGD
+                "scan_speedup": float(med["scan_us_per_step"][0] / med["scan_us_per_step"][1]),
+                "python_speedup": float(med["python_us_per_step"][0] / med["python_us_per_step"][1]),
+                "scan_us_per_step": float(np.median(d["scan_us_per_step"])),
+                "iterations": d["iterations_mean"],
+                "capped": d["capped_steps"],
+                "rmse": d["rmse_vs_tight_rel"],
+            }
     machine = f"{platform.machine()}, {platform.processor() or platform.system()}, {jax.devices()[0].platform}"
     result = {
         "code": code_version(),
@@ -203,14 +208,15 @@ def plot(result, path):
 
     rows = result["rows"]
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
-    labels, colors = [], {"apgd": "tab:blue", "admm": "tab:orange"}
+    labels, colors = [], {"apgd": "tab:blue", "admm": "tab:orange", "spg": "tab:green"}
+    k = len(SOLVERS)
     for i, row in enumerate(rows):
         for j, key in enumerate(("scan_us_per_step", "python_us_per_step")):
-            x = 3 * (i // 2) + (i % 2) + 0.4 * j - 0.2
+            x = (k + 1) * (i // k) + (i % k) + 0.4 * j - 0.2
             v = row[key]
             ax.bar(x, np.median(v), 0.4, color=colors[row["solver"]], alpha=1.0 if j == 0 else 0.5)
             ax.plot([x] * len(v), v, "k.", ms=3)
-        labels.append((3 * (i // 2) + (i % 2), f"{row['config']}\n{row['solver']}"))
+        labels.append(((k + 1) * (i // k) + (i % k), f"{row['config']}\n{row['solver']}"))
     ax.set_xticks([p for p, _ in labels], [t for _, t in labels])
     ax.set_ylabel("µs per step")
     ax.set_title(
@@ -232,7 +238,7 @@ def plot(result, path):
     ax2.set_ylabel("solver iterations")
     ax2.set_title("default contact settings: iterations per step (cap dotted)")
     ax2.legend()
-    fig.suptitle(f"APGD against ADMM, side by side; {result['machine']}", fontsize=9)
+    fig.suptitle(f"APGD, ADMM and SPG, side by side; {result['machine']}", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -138,7 +138,8 @@ def _reduction_speed(d):
     h = d["headline"]
     scan, call = h["light_scan_steps_per_second"], h["light_python_steps_per_second"]
     return (
-        f"{h['full_dof']} dof → {' + '.join(map(str, h['orders']))}, light contact: scan {scan['full']:.0f} → "
+        f"{h['full_dof']} dof → {' + '.join(map(str, h['orders']))}, light contact (SPG): "
+        f"scan {scan['full']:.0f} → "
         f"{scan['reduced']:.0f} steps/s (×{h['scan_speedup']:.1f}; socket alone ×{h['socket_speedup']:.0f}), "
         f"Python calls {call['reduced']:.0f} steps/s"
     )
@@ -235,11 +236,16 @@ def _differentiation_check(d):
 
 def _contact_solvers(d):
     h = d["headline"]
-    return "; ".join(
-        f"{c}: ADMM ×{v['scan_speedup']:.2f} per step, {v['iterations_admm']:.0f} against "
-        f"{v['iterations_apgd']:.0f} iterations, {v['capped_admm']} against {v['capped_apgd']} steps at the cap"
-        for c, v in h.items()
-    )
+    parts = []
+    for c, v in h.items():
+        a = v["apgd"]
+        others = ", ".join(
+            f"{s.upper()} ×{v[s]['scan_speedup']:.2f} per step, {v[s]['iterations']:.0f} iterations, "
+            f"{v[s]['capped']} capped"
+            for s in ("admm", "spg")
+        )
+        parts.append(f"{c}: APGD {a['iterations']:.0f} iterations, {a['capped']} capped; {others}")
+    return "; ".join(parts)
 
 
 def _generic(d):
@@ -263,7 +269,7 @@ BENCHMARKS = [
     Bench("contact_squeeze", "APGD against PGS on the symmetric squeeze", True, _contact_squeeze),
     Bench(
         "contact_solvers",
-        "APGD against ADMM in rollouts of the reduced scene: iterations, cap, step time",
+        "APGD, ADMM and SPG in rollouts of the reduced scene: iterations, cap, step time",
         False,
         _contact_solvers,
     ),
