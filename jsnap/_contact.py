@@ -456,6 +456,28 @@ def _ops(c, mu, m3, qm, L, qmax, dtype) -> _Ops:
     return _Ops(cm, to_cm, mv, proj, residual, qc, mc)
 
 
+def _gradient_start(c, Wm, qm, mu, m3, L, qmax, gamma0):
+    """What the gradient solvers (APGD, SPG) start from: ``_ops``, the matvec ``v -> W v`` on
+    component-major (3, C) arrays, the warm start ``x0`` (projected, masked), ``W x0`` and its
+    residual. Returns ``(ops, matvec, x0, Wx0, r0)``.
+
+    The iteration runs on component-major (3, C) arrays (normals, t1, t2 as rows): the cone
+    projection is then elementwise on three rows, which XLA fuses into a few kernels per
+    iteration (on the CPU a step of this size costs what its kernel launches cost), and the
+    reductions run over two short axes, which XLA:CPU does in one kernel, where a (3C,) vector
+    longer than 32 is reduced in two. Same iterates as the contact-major form up to round-off.
+    """
+    o = _ops(c, mu, m3, qm, L, qmax, Wm.dtype)
+    Wc = o.to_cm(Wm)
+
+    def matvec(v):
+        return o.mv(Wc, v)
+
+    x0 = o.cm(_initial(gamma0, c, mu, m3, Wm.dtype))
+    Wx0 = matvec(x0)
+    return o, matvec, x0, Wx0, o.residual(x0, Wx0)
+
+
 def _best_so_far(s, x, r, tol) -> dict:
     """The carry fields ``best``, ``best_r``, ``it`` and ``done`` after an iteration that reached
     ``x`` with residual ``r`` (the solvers return the best iterate, not the last)."""
@@ -536,23 +558,8 @@ def solve_apgd(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=Fals
     """
     c, Wm, qm, mu, mask, m3, tol, L, qmax = _setup(W, q, mu, mask, max_iters, tol, gamma0)
     dtype = Wm.dtype
-
-    # The iteration runs on component-major (3, C) arrays (normals, t1, t2 as rows): the cone
-    # projection is then elementwise on three rows, which XLA fuses into a few kernels per
-    # iteration (on the CPU a step of this size costs what its kernel launches cost), and the
-    # reductions run over two short axes, which XLA:CPU does in one kernel, where a (3C,)
-    # vector longer than 32 is reduced in two. Same iterates as the contact-major form up to
-    # round-off.
-    o = _ops(c, mu, m3, qm, L, qmax, dtype)
-    cm, proj, residual, qc = o.cm, o.proj, o.residual, o.qc
-    Wc = o.to_cm(Wm)
-
-    def matvec(v):
-        return o.mv(Wc, v)
-
-    x0 = cm(_initial(gamma0, c, mu, m3, dtype))
-    Wx0 = matvec(x0)
-    r0 = residual(x0, Wx0)
+    o, matvec, x0, Wx0, r0 = _gradient_start(c, Wm, qm, mu, m3, L, qmax, gamma0)
+    proj, residual, qc = o.proj, o.residual, o.qc
     init = _APGDCarry(
         x=x0,
         Wx=Wx0,
@@ -761,17 +768,8 @@ def solve_spg(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=False
     residual) and the loop structure are APGD's; so are the arguments and the result.
     """
     c, Wm, qm, mu, mask, m3, tol, L, qmax = _setup(W, q, mu, mask, max_iters, tol, gamma0)
-    dtype = Wm.dtype
-    o = _ops(c, mu, m3, qm, L, qmax, dtype)
-    cm, proj, residual, qc = o.cm, o.proj, o.residual, o.qc
-    Wc = o.to_cm(Wm)
-
-    def matvec(v):
-        return o.mv(Wc, v)
-
-    x0 = cm(_initial(gamma0, c, mu, m3, dtype))
-    Wx0 = matvec(x0)
-    r0 = residual(x0, Wx0)
+    o, matvec, x0, Wx0, r0 = _gradient_start(c, Wm, qm, mu, m3, L, qmax, gamma0)
+    proj, residual, qc = o.proj, o.residual, o.qc
     f0 = jnp.sum(x0 * (0.5 * Wx0 + qc))
     a_min, a_max = 1.0 / L, _SPG_MAX_STEP / L
     init = _SPGCarry(
