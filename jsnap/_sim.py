@@ -280,8 +280,9 @@ def _local_operator(sock, op, idx, R, s_p):
     mobility ``s_p`` (C, 3, C, 3) in the contact frames ``R``.
 
     Where the socket gives its block as thin factors ``W = A J'`` (``contact_factors``: the
-    reduced socket, r ~ 50-170 columns), the factors are turned into the frames and multiplied,
-    with the plug's term ``s_p Rᵀ R`` as three more columns: ``W_loc = [R'A, s_p R'] [R'J, R']'``.
+    reduced socket, r ~ 50-170 columns) and they are thin enough (r ≤ 4 x 3C), the factors are
+    turned into the frames and multiplied, with the plug's term ``s_p Rᵀ R`` as three more
+    columns: ``W_loc = [R'A, s_p R'] [R'J, R']'``.
     Turning the (C, 3, C, 3) block instead (``_rotate_blocks``: 2 x 3 multiply-adds over its
     5184 entries at 24 slots) is heavy enough for XLA:CPU to split it across the cores, and that
     cost ~30 µs per step of the 1344-dof reduced scene with light contact settings (measured
@@ -290,9 +291,13 @@ def _local_operator(sock, op, idx, R, s_p):
     round-off: float64 rollouts of the reduced scenes take the same iterations in every step,
     forces within 8e-12 of the peak on the default contact settings (position and impedance
     control) and 9e-10 with the light ones, whose solves stop at their cap and carry round-off
-    further (session 22). Other sockets: their block, turned."""
-    if hasattr(sock, "contact_factors"):
-        A, J = sock.contact_factors(op, idx)
+    further (session 22). Other sockets, and the segmented socket (its r is the mesh's nodal dofs:
+    1407 at the 1.6 mm mesh, where turning the factors ran 2717-2949 against 2638-2672 µs per step
+    turning the block; the reduced 2.0 mm mesh's r = 165, 168-184 against 193-205): their block,
+    turned."""
+    factors = getattr(sock, "contact_factors", None)
+    if factors is not None and sock.n_dof <= 4 * 3 * idx.shape[0]:
+        A, J = factors(op, idx)
         Rt = jnp.swapaxes(R, 1, 2)  # (C, 3, 3): Rt[c, i, d] = R[c, d, i]
         left = jnp.concatenate([_rotate_rows(R, A), s_p * Rt], axis=-1)
         right = jnp.concatenate([_rotate_rows(R, J), Rt], axis=-1)
