@@ -25,7 +25,8 @@ base wrench; no collision, no contact solve) is timed apart as well.
 
 Timings: the PMI operator is prepared once, outside them; a rollout's rate is the median of
 ``REPEATS`` compiled runs spread over ``SPREAD_S`` seconds at least, after a first one (whose
-excess over the median is reported as compile time; the fastest run is kept too); the per-call
+excess over the median is reported as compile time; the fastest run is kept too; three runs
+with ``--quick``); the per-call
 rate steps a jitted ``step(state, control)`` through the same motion from a Python loop. The
 reduced build is timed with an empty cache (and again from the cache). Writes
 benchmarks/results/reduction_speed.{json,png} (``_quick`` with ``--quick``).
@@ -56,6 +57,7 @@ OUT = Path(__file__).parent / "results"
 # 1344-dof light row once read a median of 170 µs per step and a fastest of 116.
 REPEATS = (11, 201)
 SPREAD_S = 3.0
+QUICK_REPEATS, QUICK_SPREAD_S = (3, 3), 0.0  # --quick (CI): the script runs, no timing to quote
 LIGHT = {"contact.width_spacing": 2.0, "contact.capacity": 24, "contact.iterations": 200}
 CONFIGS = {
     "default": {},
@@ -142,7 +144,7 @@ def _socket_us_per_step(model, prepared, n: int = 100) -> float:
     return 1e6 * best / n
 
 
-def run(mesh_size: float, method: str, config: str) -> dict:
+def run(mesh_size: float, method: str, config: str, quick: bool = False) -> dict:
     scene = jsnap.load_scene().replace(
         {"solver.mesh_size": mesh_size, "solver.method": method, **CONFIGS[config]}
     )
@@ -165,8 +167,9 @@ def run(mesh_size: float, method: str, config: str) -> dict:
     res = jsnap.rollout(model, prepared=prepared)
     jax.block_until_ready(res.energy)
     first = time.perf_counter() - t0
+    (least, most), spread = (QUICK_REPEATS, QUICK_SPREAD_S) if quick else (REPEATS, SPREAD_S)
     times, start = [], time.perf_counter()
-    while len(times) < REPEATS[0] or (time.perf_counter() - start < SPREAD_S and len(times) < REPEATS[1]):
+    while len(times) < least or (time.perf_counter() - start < spread and len(times) < most):
         t0 = time.perf_counter()
         jax.block_until_ready(jsnap.rollout(model, prepared=prepared).energy)
         times.append(time.perf_counter() - t0)
@@ -209,7 +212,7 @@ def main(argv=None):
             # size sweep.
             for config in configs if h == 1.6 else ["light"]:
                 for method in ("full", "reduced"):
-                    rows.append(run(h, method, config))
+                    rows.append(run(h, method, config, a.quick))
                     r = rows[-1]
                     if method == "reduced":
                         full = next(x for x in rows if x["mesh_size"] == h and x["config"] == config)
