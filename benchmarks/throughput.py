@@ -2,7 +2,7 @@
 that differ in Young's modulus, friction and the plug's lateral offset, in scene-steps per
 second against the batch size.
 
-    python benchmarks/throughput.py [--quick] [--admm] [--steps 20] [--max-batch 512]
+    python benchmarks/throughput.py [--quick] [--admm | --spg] [--steps 20] [--max-batch 512]
 
 The model is the paper's Model 4 on the ~1300-dof mesh of ``benchmarks/frequency.py``: the
 default scene with P2 elements at ``solver.mesh_size`` 1.7 mm (1218 free dofs), segmented and
@@ -31,10 +31,10 @@ until ``--max-batch`` (every 4x), until a 4x larger batch gains less than 5 % (s
 from a batch of 16 on), or until a call would take more than ``--max-call`` seconds. CPU numbers and GPU
 numbers are kept apart (``results[platform]``); a run on one platform keeps the other's, and
 the top-level ``headline`` is the CPU one (a GPU's is also ``headline_gpu``).
-``--admm`` (not run by ``jsnap bench``): a third series with ``contact.solver = "admm"``
-(500 iterations), side by side with the two APGD ones in the same run; its while loop runs to
-the slowest lane as APGD's does, and its slowest lanes take fewer iterations (docs/contact.md).
-Writes ``throughput_admm.{json,png}``.
+``--admm`` or ``--spg`` (not run by ``jsnap bench``): a third series with ``contact.solver =
+"admm"`` or ``"spg"`` (500 iterations), side by side with the two APGD ones in the same run;
+its while loop runs to the slowest lane as APGD's does (docs/contact.md). Writes
+``throughput_admm.{json,png}`` or ``throughput_spg.{json,png}``.
 ``--quick`` (CI): batches 1 and 4, 10 steps, the default series only, no saturation check.
 Writes benchmarks/results/throughput{,_quick}.{json,png}.
 """
@@ -69,7 +69,11 @@ NOTE = (
     "The single_scene row is one scene jitted without vmap (early exit working)."
 )
 SERIES = {"default (500 iterations)": {}, "contact.iterations = 100": {"contact.iterations": 100}}
-ADMM_SERIES = {"ADMM (500 iterations)": {"contact.solver": "admm"}}
+# The third series of --admm and --spg: the other contact solvers at the scene's settings.
+EXTRA_SERIES = {
+    "admm": {"ADMM (500 iterations)": {"contact.solver": "admm"}},
+    "spg": {"SPG (500 iterations)": {"contact.solver": "spg"}},
+}
 E_RANGE, MU_RANGE, OFFSET_RANGE = (1800.0, 2600.0), (0.1, 0.5), (-0.4, 0.4)  # MPa, -, mm
 
 
@@ -248,9 +252,13 @@ def main(argv=None):
     ap.add_argument("--max-batch", type=int, default=POOL)
     ap.add_argument("--max-call", type=float, default=30.0, help="seconds a timed call may take")
     ap.add_argument("--admm", action="store_true", help="a third series with the ADMM contact solver")
+    ap.add_argument("--spg", action="store_true", help="a third series with the SPG contact solver")
     a = ap.parse_args(argv)
-    if a.quick and a.admm:
-        ap.error("--admm is a full run's extra series; it has no quick variant")
+    if a.admm and a.spg:
+        ap.error("--admm and --spg are alternatives: one extra series per run")
+    extra = "admm" if a.admm else "spg" if a.spg else None
+    if a.quick and extra:
+        ap.error(f"--{extra} is a full run's extra series; it has no quick variant")
     t_start = time.perf_counter()
     code = code_version()  # the code as imported, before anyone commits during the run
     n_steps = 10 if a.quick else a.steps
@@ -259,7 +267,7 @@ def main(argv=None):
     else:
         # Every 4x (each batch size is a compile): the 30-minute budget of `jsnap bench`.
         batches = [4**k for k in range(10) if 4**k <= min(a.max_batch, POOL)]
-        series = {**SERIES, **(ADMM_SERIES if a.admm else {})}
+        series = {**SERIES, **(EXTRA_SERIES[extra] if extra else {})}
     load = [os.getloadavg()[0]]
     result = {"series": {}}
     for name, changes in series.items():
@@ -299,20 +307,22 @@ def main(argv=None):
         headline["iterations_100_best_scene_steps_per_second"] = best_alt["scene_steps_per_second"]
         # What the lower cap costs in accuracy on lane 0 (same parameters in both series).
         headline["iterations_100_force_rmse_rel_peak_lane0"] = _lane0_rmse(alt, main_rows)
-    if a.admm:
-        name = next(iter(ADMM_SERIES))
+    if extra:
+        name = next(iter(EXTRA_SERIES[extra]))
         rows = result["series"][name]
-        best_admm = max(rows, key=lambda r: r["scene_steps_per_second"])
+        best_x = max(rows, key=lambda r: r["scene_steps_per_second"])
         headline.update(
-            admm_batch_1_scene_steps_per_second=rows[0]["scene_steps_per_second"],
-            admm_best_batch=best_admm["batch"],
-            admm_best_scene_steps_per_second=best_admm["scene_steps_per_second"],
-            admm_iterations_mean_at_best=best_admm["iterations_mean"],
-            apgd_iterations_mean_at_best=best["iterations_mean"],
-            admm_force_rmse_rel_peak_lane0=_lane0_rmse(rows, main_rows),
+            {
+                f"{extra}_batch_1_scene_steps_per_second": rows[0]["scene_steps_per_second"],
+                f"{extra}_best_batch": best_x["batch"],
+                f"{extra}_best_scene_steps_per_second": best_x["scene_steps_per_second"],
+                f"{extra}_iterations_mean_at_best": best_x["iterations_mean"],
+                "apgd_iterations_mean_at_best": best["iterations_mean"],
+                f"{extra}_force_rmse_rel_peak_lane0": _lane0_rmse(rows, main_rows),
+            }
         )
         common = {r["batch"]: r for r in main_rows}
-        headline["admm_speedup_by_batch"] = {
+        headline[f"{extra}_speedup_by_batch"] = {
             str(r["batch"]): r["scene_steps_per_second"] / common[r["batch"]]["scene_steps_per_second"]
             for r in rows
             if r["batch"] in common
@@ -320,7 +330,7 @@ def main(argv=None):
     result["headline"] = headline
     result["wall_seconds"] = time.perf_counter() - t_start
 
-    stem = "throughput_quick" if a.quick else "throughput_admm" if a.admm else "throughput"
+    stem = "throughput_quick" if a.quick else f"throughput_{extra}" if extra else "throughput"
     OUT.mkdir(exist_ok=True)
     path = OUT / f"{stem}.json"
     results = {}
