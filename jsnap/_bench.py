@@ -242,7 +242,8 @@ def _contact_solvers(d):
         others = ", ".join(
             f"{s.upper()} ×{v[s]['scan_speedup']:.2f} per step, {v[s]['iterations']:.0f} iterations, "
             f"{v[s]['capped']} capped"
-            for s in ("admm", "spg")
+            for s in v
+            if s not in ("apgd", "contact_steps")
         )
         parts.append(f"{c}: APGD {a['iterations']:.0f} iterations, {a['capped']} capped; {others}")
     return "; ".join(parts)

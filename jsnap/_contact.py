@@ -790,12 +790,13 @@ def solve_spg(W, q, mu, mask, *, max_iters, tol, gamma0=None, return_trace=False
         Wd = matvec(d)
         gd, dWd, dd = jnp.sum(g * d), jnp.sum(d * Wd), jnp.sum(d * d)
         curved = dWd > 0
+        dWd_safe = jnp.where(curved, dWd, 1.0)
         full = s.f + gd + 0.5 * dWd <= jnp.max(s.hist) + _SPG_DECREASE * gd
-        lam = jnp.where(full | ~curved, 1.0, jnp.clip(-gd / jnp.where(curved, dWd, 1.0), 0.0, 1.0))
+        lam = jnp.where(full | ~curved, 1.0, jnp.clip(-gd / dWd_safe, 0.0, 1.0))
         x_new = s.x + lam * d
         Wx_new = s.Wx + lam * Wd
         f_new = s.f + lam * gd + 0.5 * lam * lam * dWd
-        alpha = jnp.clip(jnp.where(curved, dd / jnp.where(curved, dWd, 1.0), a_max), a_min, a_max)
+        alpha = jnp.clip(jnp.where(curved, dd / dWd_safe, a_max), a_min, a_max)
         # A select, not a scatter: XLA:CPU compiles the loop into one kernel only without scatters.
         hist = jnp.where(jnp.arange(_SPG_MEMORY) == s.it % _SPG_MEMORY, f_new, s.hist)
         r_new = residual(x_new, Wx_new)

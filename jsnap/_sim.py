@@ -738,7 +738,9 @@ def rollout(
     # The predict-correct loop rolled (compiles faster) unless differentiated or batched (``step``).
     rolled = not _differentiated_or_batched(prepared, model, controls)
     controls = jnp.asarray(controls, dtype)
-    state = _start(model, controls, dtype)
+    state = init_state(model, dtype)
+    # The plug starts moving with the drive (no start-up transient in the virtual coupling).
+    state = eqx.tree_at(lambda s: s.plug_vel, state, (controls[0] - state.plug) / jnp.asarray(model.dt, dtype))
     if not progress:
         out, xs = _whole(model, prepared, state, controls, keep_x, rolled)
         return _result(out, xs, model, dtype)
@@ -766,13 +768,6 @@ def rollout(
     out = jax.tree_util.tree_map(lambda *a: jnp.concatenate(a), *outs)
     xs = None if not keep_x else jnp.concatenate(xs_all)
     return _result(out, xs, model, dtype)
-
-
-def _start(model: Model, controls, dtype) -> State:
-    """The state a rollout starts from: at rest, the plug moving with the drive (no start-up
-    transient in the virtual coupling)."""
-    state = init_state(model, dtype)
-    return eqx.tree_at(lambda s: s.plug_vel, state, (controls[0] - state.plug) / jnp.asarray(model.dt, dtype))
 
 
 @eqx.filter_jit
