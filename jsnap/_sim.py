@@ -276,13 +276,17 @@ def _rotate_rows(R, A):
 
 
 def _local_operator(sock, op, idx, R, s_p):
-    """``(A, W_loc)``: the socket's ``A`` (see ``_socket``) and the Delassus block with the plug's
-    mobility ``s_p`` (C, 3, C, 3) in the contact frames ``R``.
+    """``(A, W)``: the socket's ``A`` (see ``_socket``) and the Delassus block with the plug's
+    mobility ``s_p`` in the contact frames ``R``, unsymmetrised and without the compliance
+    (``ContactProblem.delassus`` forms the solver's matrix from it): the block itself (C, 3, C,
+    3), or its factors ``(left, right)`` (C, 3, m) with ``W[c, i, e, j] = left[c, i] · right[e,
+    j]``.
 
     Where the socket gives its block as thin factors ``W = A J'`` (``contact_factors``: the
     reduced socket, r ~ 50-170 columns) and they are thin enough (r ≤ 4 x 3C), the factors are
-    turned into the frames and multiplied, with the plug's term ``s_p Rᵀ R`` as three more
-    columns: ``W_loc = [R'A, s_p R'] [R'J, R']'``.
+    turned into the frames, with the plug's term ``s_p Rᵀ R`` as three more columns:
+    ``W_loc = [R'A, s_p R'] [R'J, R']'``, multiplied out only for the leading slots the solve
+    takes (``ContactProblem.delassus``).
     Turning the (C, 3, C, 3) block instead (``_rotate_blocks``: 2 x 3 multiply-adds over its
     5184 entries at 24 slots) is heavy enough for XLA:CPU to split it across the cores, and that
     cost ~30 µs per step of the 1344-dof reduced scene with light contact settings (measured
@@ -301,7 +305,7 @@ def _local_operator(sock, op, idx, R, s_p):
         Rt = jnp.swapaxes(R, 1, 2)  # (C, 3, 3): Rt[c, i, d] = R[c, d, i]
         left = jnp.concatenate([_rotate_rows(R, A), s_p * Rt], axis=-1)
         right = jnp.concatenate([_rotate_rows(R, J), Rt], axis=-1)
-        return A, jnp.einsum("cir,ejr->ciej", left, right)
+        return A, (left, right)
     A, W = sock.contact_operator(op, idx)  # J S^-1 (C, 3, n); J S^-1 J' (C, 3, C, 3), world
     W = W + s_p * jnp.eye(3, dtype=W.dtype)[None, :, None, :]
     return A, _rotate_blocks(R, W)
@@ -349,7 +353,9 @@ class _Pass(NamedTuple):
 class ContactProblem(eqx.Module):
     """One step's cone problem (see ``_contact``) and what maps it back to the socket.
 
-    W: (3C, 3C) Delassus matrix in contact frames, mm/(N s); q: (3C,) free relative velocity
+    W: the Delassus block in contact frames, mm/(N s), as ``_local_operator`` gives it (the
+    (C, 3, C, 3) block or its factors; the solver's matrix is ``delassus(k)``); shift: the
+    contact compliance over the step, added to its diagonal; q: (3C,) free relative velocity
     plus gap stabilisation, mm/s; mu: (C,); active: (C,) bool; idx: (C,) candidate index of
     each slot; A: (C, 3, n) ``J S^-1``, or what the socket's ``contact_velocity`` applies in
     its stead (the modal socket: the slots' interpolation); R: (C, 3, 3) frames [n, t1, t2];
@@ -357,7 +363,8 @@ class ContactProblem(eqx.Module):
     did not fit.
     """
 
-    W: jax.Array
+    W: jax.Array | tuple[jax.Array, jax.Array]
+    shift: jax.Array
     q: jax.Array
     mu: jax.Array
     active: jax.Array
@@ -367,6 +374,20 @@ class ContactProblem(eqx.Module):
     points: jax.Array
     gamma0: jax.Array
     overflow: jax.Array
+
+    def delassus(self, k: int) -> jax.Array:
+        """(3k, 3k) Delassus matrix of the leading ``k`` slots, symmetrised, with the compliance
+        on its diagonal. From factors, only the leading rows are multiplied: the solve takes
+        the leading slots that hold the active ones (``_solve``), most often a quarter or half
+        of the buffer, and the whole product was the step's largest kernel (a 72 x 56 x 72 dot
+        at 24 slots on the 1344-dof reduced scene, ~20 µs of a ~117 µs step)."""
+        if isinstance(self.W, tuple):
+            left, right = self.W
+            W = jnp.einsum("cir,ejr->ciej", left[:k], right[:k])
+        else:
+            W = self.W[:k, :, :k]
+        W = W.reshape(3 * k, 3 * k)
+        return 0.5 * (W + W.T) + self.shift * jnp.eye(3 * k, dtype=W.dtype)
 
 
 def _manifold(model: Model, phi):
@@ -416,12 +437,12 @@ def _contact_problem(model: Model, prepared: Prepared, state: State, vbar_free, 
     # Delassus operator in contact frames.
     R = _frames(normal)
     A, W_loc = _local_operator(sock, op, idx, R, s_p)
-    W_loc = W_loc.reshape(3 * C, 3 * C)
-    W_loc = 0.5 * (W_loc + W_loc.T) + (model.compliance / T) * jnp.eye(3 * C, dtype=dtype)
+    shift = jnp.asarray(model.compliance / T, dtype)
     u_free = sock.point_velocity(vbar_free, idx) - vp_free
     q = jnp.einsum("cdi,cd->ci", R, u_free).at[:, 0].add(jnp.maximum(phi, 0) / T).reshape(-1)
     mu = jnp.broadcast_to(prepared.params.friction, (C,)).astype(dtype)
-    return ContactProblem(W_loc, q, mu, active, idx, A, R, y[idx], gamma[idx], jnp.maximum(n_cand - C, 0))
+    overflow = jnp.maximum(n_cand - C, 0)
+    return ContactProblem(W_loc, shift, q, mu, active, idx, A, R, y[idx], gamma[idx], overflow)
 
 
 def _buckets(capacity: int) -> tuple[int, ...]:
@@ -462,7 +483,7 @@ def _solve(model: Model, prob: ContactProblem, whole=False):
     def leading(i, k):
         def f(_):
             sol = solve(
-                prob.W[: 3 * k, : 3 * k],
+                prob.delassus(k),
                 prob.q[: 3 * k],
                 prob.mu[:k],
                 prob.active[:k] & (branch == i),  # the branch taken: prob.active[:k]
