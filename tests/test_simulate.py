@@ -113,19 +113,22 @@ def test_admm_converges_where_apgd_hits_its_cap(default_coarse, tight_coarse):
     assert np.sqrt(np.mean((F - ref) ** 2)) <= 2e-3 * ref.max()
 
 
-def test_spg_takes_fewer_iterations_to_apgds_accuracy(default_coarse, tight_coarse):
-    """SPG (``contact.solver = "spg"``) at the scene's settings against the same tight curve:
-    measured, it stops at the cap in 5 of the 117 steps (APGD 41), takes 102 iterations per
-    step on average (APGD 328), and lands as close to the tight curve as APGD (RMSE 0.30 % of the
-    peak for both; its largest errors sit at a capped step and at one that met the 1e-6 residual
-    with its soft modes unresolved, see ``kkt_residual``)."""
+def test_spg_takes_fewer_iterations_than_apgd(default_coarse, tight_coarse):
+    """SPG (``contact.solver = "spg"``) at the scene's settings against APGD and the tight curve:
+    it stops at the cap in 2-7 of the 117 steps (APGD 41) and takes 91-104 iterations per step on
+    average (APGD 328). Its distance from the tight curve depends on round-off: the solves stop
+    at the 1e-6 residual with the soft modes (the force distribution along a line contact) not
+    resolved, and where in that valley SPG's long steps leave each solve moves with the last bits
+    of the step size L. Measured (session 23, L scaled by 1 + ε before the solve): RMSE 0.30 %
+    of the peak at ε = 0, 2.17 % at 1e-12, 1.97 % at -1e-9, 0.21 % at 1e-6; APGD 0.30 % at every
+    ε. Hence the bound here is the spread's, not APGD's accuracy (docs/contact.md)."""
     _, model, res = _run({"contact.solver": "spg"})
     apgd = default_coarse[2]
     capped = [int(np.sum(np.asarray(r.iterations) >= model.iterations)) for r in (res, apgd)]
     assert capped[0] <= capped[1] // 4
     assert np.mean(np.asarray(res.iterations)) < 0.5 * np.mean(np.asarray(apgd.iterations))
     F, ref = np.asarray(res.insertion_force), np.asarray(tight_coarse.insertion_force)
-    assert np.sqrt(np.mean((F - ref) ** 2)) <= 5e-3 * ref.max()
+    assert np.sqrt(np.mean((F - ref) ** 2)) <= 3e-2 * ref.max()
 
 
 def test_impedance_control_tracks_position_control(default_coarse):
