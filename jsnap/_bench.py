@@ -249,6 +249,15 @@ def _contact_solvers(d):
     return "; ".join(parts)
 
 
+def _contact_tolerance(d):
+    parts = [
+        f"{r['tolerance']:.0e}: {r['scan_us_per_step']:.0f} µs per step, "
+        f"{r['iterations_mean']:.0f} iterations, RMSE {100 * r['float64_rmse_rel_peak']:.2f} %"
+        for r in d["rows"]
+    ]
+    return "1344-dof reduced, light contact (SPG), by tolerance: " + "; ".join(parts)
+
+
 def _generic(d):
     for key in ("summary", "headline"):
         if key in d:
@@ -273,6 +282,12 @@ BENCHMARKS = [
         "APGD, ADMM and SPG in rollouts of the reduced scene: iterations, cap, step time",
         False,
         _contact_solvers,
+    ),
+    Bench(
+        "contact_tolerance",
+        "light contact settings over contact.tolerance: step time, iterations, force error",
+        False,
+        _contact_tolerance,
     ),
     Bench(
         "fem_convergence",
