@@ -380,7 +380,9 @@ class ContactProblem(eqx.Module):
         on its diagonal. From factors, only the leading rows are multiplied: the solve takes
         the leading slots that hold the active ones (``_solve``), most often a quarter or half
         of the buffer, and the whole product was the step's largest kernel (a 72 x 56 x 72 dot
-        at 24 slots on the 1344-dof reduced scene, ~20 µs of a ~117 µs step)."""
+        at 24 slots on the 1344-dof reduced scene; the leading rows alone, 36 x 56 x 36 on most
+        of its light steps, took the step with one solver iteration from 83-85 to 70-76 µs,
+        session 23)."""
         if isinstance(self.W, tuple):
             left, right = self.W
             W = jnp.einsum("cir,ejr->ciej", left[:k], right[:k])
