@@ -26,7 +26,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _common import code_version, jitted_step
+from _common import LIGHT, code_version, jitted_step
 
 import jsnap
 from jsnap import _sim
@@ -35,7 +35,7 @@ from jsnap._contact import solve_admm, solve_apgd, solve_spg
 OUT = Path(__file__).parent / "results"
 MESH = 1.6
 CONFIGS = {
-    "light": {"contact.width_spacing": 2.0, "contact.capacity": 24, "contact.iterations": 200},
+    "light": LIGHT,
     "default": {},
 }
 SOLVE = {"apgd": solve_apgd, "admm": solve_admm, "spg": solve_spg}  # APGD first: the reference

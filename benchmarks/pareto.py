@@ -68,12 +68,11 @@ from pathlib import Path
 
 import jax
 import numpy as np
-from _common import code_version, two_step_compile_seconds
+from _common import LIGHT, code_version, two_step_compile_seconds
 
 import jsnap
 
 OUT = Path(__file__).parent / "results"
-LIGHT = {"contact.width_spacing": 2.0, "contact.capacity": 24, "contact.iterations": 200}
 RED = {"solver.method": "reduced"}
 THRESHOLD = 0.02  # "within 2 %" in the headline
 SLOW_FIRST_CALL_S = 30.0  # a first call longer than this is not repeated (see run)

@@ -29,13 +29,13 @@ from pathlib import Path
 import jax
 import numpy as np
 import scipy.linalg as sla
+from _common import LIGHT
 
 import jsnap
 from jsnap import _reduce as R
 from jsnap._fem import lame
 
 OUT = Path(__file__).parent / "results"
-LIGHT = {"contact.width_spacing": 2.0, "contact.capacity": 24, "contact.iterations": 200}
 
 
 _PREPARED: dict = {}  # the PMI operator per model at its own parameters (float64 and float32 runs share it)

@@ -47,7 +47,8 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _common import jitted_step
+from _common import LIGHT as LIGHT_CONTACT
+from _common import TIGHT_ADMM, jitted_step
 
 import jsnap
 from jsnap._sim import _cast
@@ -65,12 +66,7 @@ QUICK_REPEATS, QUICK_SPREAD_S = (3, 3), 0.0  # --quick (CI): the script runs, no
 # ~4e-5 to 6e-5 (median, two runs; 2.5e-4 at most), so the hardest steps are solved to ~1e-4
 # whatever the tolerance; the float64 force is as close to a tightly solved rollout at 1e-4 as at
 # 1e-6, and 3e-4 moves the snap by a step (benchmarks/contact_tolerance.py, docs/reduction.md).
-LIGHT = {
-    "contact.width_spacing": 2.0,
-    "contact.capacity": 24,
-    "contact.iterations": 200,
-    "contact.tolerance": 1e-4,
-}
+LIGHT = {**LIGHT_CONTACT, "contact.tolerance": 1e-4}
 CONFIGS = {
     "default": {},
     "light": {**LIGHT, "contact.solver": "spg"},
@@ -95,9 +91,7 @@ def _tight_reference(mesh_size: float) -> np.ndarray:
             "solver.mesh_size": mesh_size,
             "solver.dtype": "float64",
             **LIGHT,
-            "contact.solver": "admm",
-            "contact.iterations": 20000,
-            "contact.tolerance": 1e-10,
+            **TIGHT_ADMM,
         }
     )
     return np.asarray(jsnap.rollout(jsnap.build(scene)).insertion_force, np.float64)

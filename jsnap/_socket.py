@@ -12,8 +12,9 @@ or reduced coordinates otherwise):
 - ``contact_operator(op, idx)``: ``A = J S^-1`` (C, 3, n; or what stands for it, see
   ``contact_velocity``) and the Delassus block ``W = J S^-1 J'`` (C, 3, C, 3) for the selected
   points; a socket whose block is a product of two thin factors (the reduced one, ``W = A J'``
-  with r columns) may offer ``contact_factors(op, idx) -> (A, J)`` instead, and the step then
-  turns the factors into the contact frames, not the (C, 3, C, 3) block (``_sim``);
+  with r columns) may offer ``contact_factors(op, idx) -> (A, J)`` as well, and while r is small
+  enough the step turns the factors into the contact frames, not the (C, 3, C, 3) block
+  (``_sim._local_operator``);
 - ``contact_velocity(op, A, force)``: ``A' force``, the midpoint velocity that forces (C, 3) at
   the selected points add;
 - ``point_velocity(vbar, idx)``: (C, 3) velocity ``J vbar`` of the selected points;
