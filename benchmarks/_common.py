@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 
 import jsnap
-from jsnap._sim import _cast, init_state, step
+from jsnap._core.step import _cast, init_state, step
 
 # The light contact settings several benchmarks compare against the scene's: candidate lines
 # every 2.0 mm across the width (default 1.0), 24 slots (64), at most 200 solver iterations (500).
@@ -27,7 +27,7 @@ TIGHT_ADMM = {"contact.solver": "admm", "contact.iterations": 20000, "contact.to
 
 def code_version() -> dict:
     """The commit the numbers were taken at, the library files modified in the working tree, and
-    the ``XLA_FLAGS`` the process runs with (jsnap adds its small-loop option, jsnap._xla)."""
+    the ``XLA_FLAGS`` the process runs with (jsnap adds its small-loop option, jsnap._apps.xla)."""
     here = Path(__file__).resolve().parent
 
     def git(*args):

@@ -29,8 +29,8 @@ import numpy as np
 from _common import LIGHT, code_version, jitted_step
 
 import jsnap
-from jsnap import _sim
-from jsnap._contact import solve_admm, solve_apgd, solve_spg
+from jsnap._core import step as _sim
+from jsnap._core.contact import solve_admm, solve_apgd, solve_spg
 
 OUT = Path(__file__).parent / "results"
 MESH = 1.6

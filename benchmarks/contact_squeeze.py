@@ -27,7 +27,7 @@ import matplotlib
 import numpy as np
 
 import jsnap  # noqa: F401  (enables x64)
-from jsnap._contact import solve_apgd, solve_pgs, symmetric_squeeze_problem
+from jsnap._core.contact import solve_apgd, solve_pgs, symmetric_squeeze_problem
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt

@@ -35,7 +35,7 @@ import numpy as np
 import scipy.sparse.linalg as spla
 
 import jsnap
-from jsnap._cli import design_guide_force
+from jsnap._apps.cli import design_guide_force
 
 OUT = Path(__file__).parent / "results"
 

@@ -55,7 +55,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jsnap
-from jsnap import _sim
+from jsnap._core import step as _sim
 
 OUT = Path(__file__).parent / "results"
 NAMES = ("E", "friction", "alpha", "beta")
@@ -196,7 +196,7 @@ def noise(scene, check=None, k=(-2, -1, 0, 1, 2), h=1e-6):
     ~h^2 L'' ~ 1e-11 here), for LAPACK's and XLA's dense inverse; with a saved ``check``, the
     central quotient's round-off error sqrt(2) sigma / (2 h |x dL/dx|) it predicts at each
     swept step, beside the measured error."""
-    from jsnap import _integrate
+    from jsnap._core import pmi as _integrate
 
     out = {}
     for route, minimum in (("lapack_potri", _integrate._HOST_INVERSE_MIN), ("xla_cholesky", 10**9)):

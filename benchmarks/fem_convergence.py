@@ -4,7 +4,7 @@ P1 and P2 under refinement; writes benchmarks/results/fem_convergence.json.
     python benchmarks/fem_convergence.py [--quick]
 
 Meshes up to ``DIRECT_MAX_DOF`` free dofs are solved by the library's sparse direct solve
-(``jsnap._fem.solve_static``); the larger ones (the 0.2 mm P2 mesh, 160k dofs: the direct solve
+(``jsnap._build.fem.solve_static``); the larger ones (the 0.2 mm P2 mesh, 160k dofs: the direct solve
 took ~4 minutes and ~10 GB here) by conjugate gradients to a relative residual of 1e-12,
 preconditioned by a two-level cycle: damped Jacobi smoothing and an exact coarse solve with the
 P1 element on the same mesh (P2 -> P1 by dropping the edge nodes, P1 -> P2 by linear
@@ -21,8 +21,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from jsnap import _fem
-from jsnap._geometry import mesh_box
+from jsnap._build import fem as _fem
+from jsnap._geometry.cantilever import mesh_box
 
 L, H, B, P, E, NU = 10.0, 1.2, 4.0, 3.0, 2200.0, 0.35
 DIRECT_MAX_DOF = 60_000

@@ -48,8 +48,8 @@ import numpy as np
 from _common import code_version, jitted_step, scan_timing
 
 import jsnap
-from jsnap._neural_sdf import NeuralSDFConfig, cache_key, cache_path, shipped_path
-from jsnap._sdf import rounded_box_mesh
+from jsnap._build.neural_sdf import NeuralSDFConfig, cache_key, cache_path, shipped_path
+from jsnap._core.sdf import rounded_box_mesh
 
 OUT = Path(__file__).parent / "results"
 ELEMENT = "P2"
@@ -72,8 +72,8 @@ def machine(load) -> str:
 
 def neural_cached(scene) -> bool:
     """Whether the default neural SDF of the scene's plug is cached or shipped (no training needed)."""
-    from jsnap._model import _plug_geometry
-    from jsnap._scene import connector_geometry
+    from jsnap._build.model import _plug_geometry
+    from jsnap._geometry.scene import connector_geometry
 
     half, radius, _ = _plug_geometry(scene, connector_geometry(scene))
     key = cache_key(rounded_box_mesh(half, radius), NeuralSDFConfig())

@@ -32,8 +32,8 @@ import scipy.linalg as sla
 from _common import LIGHT
 
 import jsnap
-from jsnap import _reduce as R
-from jsnap._fem import lame
+from jsnap._build import reduce as R
+from jsnap._build.fem import lame
 
 OUT = Path(__file__).parent / "results"
 

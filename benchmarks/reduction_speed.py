@@ -51,7 +51,7 @@ from _common import LIGHT as LIGHT_CONTACT
 from _common import TIGHT_ADMM, jitted_step
 
 import jsnap
-from jsnap._sim import _cast
+from jsnap._core.step import _cast
 
 OUT = Path(__file__).parent / "results"
 # Timed rollouts per row: at least the first, and more, up to the second, until SPREAD_S seconds

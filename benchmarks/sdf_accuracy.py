@@ -30,8 +30,8 @@ import matplotlib
 import numpy as np
 
 import jsnap
-from jsnap._model import _plug_geometry
-from jsnap._neural_sdf import (
+from jsnap._build.model import _plug_geometry
+from jsnap._build.neural_sdf import (
     NeuralSDFConfig,
     band_errors,
     cache_key,
@@ -41,8 +41,8 @@ from jsnap._neural_sdf import (
     summarise,
     train,
 )
-from jsnap._scene import connector_geometry
-from jsnap._sdf import MeshSDF, mesh_sdf_and_normal, rounded_box_mesh, rounded_box_sdf
+from jsnap._geometry.scene import connector_geometry
+from jsnap._core.sdf import MeshSDF, mesh_sdf_and_normal, rounded_box_mesh, rounded_box_sdf
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt

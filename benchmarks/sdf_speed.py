@@ -34,10 +34,10 @@ import matplotlib
 import numpy as np
 
 import jsnap
-from jsnap._model import _plug_geometry
-from jsnap._neural_sdf import load_or_train, neural_sdf_and_normal
-from jsnap._scene import connector_geometry
-from jsnap._sdf import MeshSDF, mesh_sdf_and_normal, rounded_box_mesh, rounded_box_sdf_and_normal
+from jsnap._build.model import _plug_geometry
+from jsnap._build.neural_sdf import load_or_train, neural_sdf_and_normal
+from jsnap._geometry.scene import connector_geometry
+from jsnap._core.sdf import MeshSDF, mesh_sdf_and_normal, rounded_box_mesh, rounded_box_sdf_and_normal
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
@@ -204,7 +204,7 @@ def main(argv=None):
     fig.savefig(args.out / f"{STEM}.png", dpi=120)
     print(f"wrote {args.out / (STEM + '.json')} and {STEM}.png")
     # The target is judged on the full run only: the quick run (CI) checks the pipeline, compiled
-    # with other XLA options under which the two SDFs' ratio differs (jsnap._bench.QUICK_XLA_FLAGS).
+    # with other XLA options under which the two SDFs' ratio differs (jsnap._apps.bench.QUICK_XLA_FLAGS).
     return 0 if out["headline"]["passed"] or args.quick else 1
 
 

@@ -32,9 +32,9 @@ import scipy.linalg as sl
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from jsnap import _nonlinear as N
-from jsnap._integrate import Material
-from jsnap._scene import connector_geometry, load_scene
+from jsnap._core import nonlinear as N
+from jsnap._core.pmi import Material
+from jsnap._geometry.scene import connector_geometry, load_scene
 
 DT, NU, RHO = 1e-3, 0.35, 1.05e-9
 STOP = 1e8  # a run whose energy exceeds STOP * E0 is stopped and counted as diverged

@@ -55,7 +55,7 @@ import numpy as np
 from _common import code_version
 
 import jsnap
-from jsnap._sim import _cast, init_state, step
+from jsnap._core.step import _cast, init_state, step
 
 OUT = Path(__file__).parent / "results"
 SCENE = {"solver.element": "P2", "solver.mesh_size": 1.7, "solver.method": "reduced", "solver.sdf": "neural"}

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 import jsnap  # noqa: F401  (enables float64)
-from jsnap import _fem
-from jsnap._geometry import mesh_box
-from jsnap._integrate import SparseBlocks
+from jsnap._build import fem as _fem
+from jsnap._geometry.cantilever import mesh_box
+from jsnap._core.pmi import SparseBlocks
 
 # The CLI tests call `main` in this process: keep its JAX compilation cache (a setting of the whole
-# process, see jsnap._cache.use_compilation_cache) from reaching every test after them.
+# process, see jsnap._build.cache.use_compilation_cache) from reaching every test after them.
 os.environ.setdefault("JSNAP_XLA_CACHE", "0")
 
 # The straight reference arm of refs/calculix-cantilever (tests/data/README.md).

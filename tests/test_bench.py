@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from jsnap import _bench
-from jsnap._cli import main as cli_main
+from jsnap._apps import bench as _bench
+from jsnap._apps.cli import main as cli_main
 
 ROOT = Path(__file__).resolve().parent.parent / "benchmarks"
 
@@ -49,7 +49,7 @@ def test_quick_benchmarks_run(tmp_path, monkeypatch):
     monkeypatch.setenv("JSNAP_BENCHMARKS", str(bench))
     # Its own process: fifteen scripts' compiled programs and models stay out of the test
     # process's memory.
-    run = subprocess.run([sys.executable, "-m", "jsnap._cli", "bench", "--quick"], cwd=tmp_path, check=False)
+    run = subprocess.run([sys.executable, "-m", "jsnap._apps.cli", "bench", "--quick"], cwd=tmp_path, check=False)
     assert run.returncode == 0
     times = json.loads((bench / "results" / "bench_times_quick.json").read_text())
     quick = [b.name for b in _bench.available(bench) if b.quick]

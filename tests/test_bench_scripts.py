@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from jsnap import _bench
+from jsnap._apps import bench as _bench
 
 ROOT = Path(__file__).resolve().parent.parent / "benchmarks"
 

@@ -1,4 +1,4 @@
-"""The build cache's cross-process behaviour (jsnap._cache): processes asking for the same file
+"""The build cache's cross-process behaviour (jsnap._build.cache): processes asking for the same file
 at once build it once; a corrupt file is rebuilt, once."""
 
 import json
@@ -10,7 +10,7 @@ import warnings
 
 import pytest
 
-from jsnap import _cache
+from jsnap._build import cache as _cache
 
 # A worker: waits for the go file, then load_or_make on the shared path; its make sleeps (so the
 # others arrive while it builds) and logs each build. Prints what it got.
@@ -18,7 +18,7 @@ WORKER = textwrap.dedent(
     """
     import os, sys, time
     from pathlib import Path
-    from jsnap._cache import load_or_make
+    from jsnap._build.cache import load_or_make
 
     path, log, go = Path(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3])
     while not go.exists():
@@ -147,7 +147,7 @@ COMPILER = textwrap.dedent(
     """
     import jax, jax.numpy as jnp
     from jax import monitoring
-    from jsnap._cache import use_compilation_cache
+    from jsnap._build.cache import use_compilation_cache
 
     hits = []
     monitoring.register_event_listener(lambda e, **kw: hits.append(e) if "cache_hits" in e else None)
@@ -176,7 +176,7 @@ def test_compiled_program_reloaded_by_the_next_process(tmp_path, monkeypatch, ca
     assert first[1] == second[1]  # the same value
     assert (first[3], second[3]) == ("False", "True")  # compiled, then loaded
 
-    from jsnap._cli import main as cli_main
+    from jsnap._apps.cli import main as cli_main
 
     monkeypatch.setenv("JSNAP_CACHE", str(tmp_path))
     assert cli_main(["cache", "--json"]) == 0
@@ -190,7 +190,7 @@ def test_cache_command_lists_and_clears(tmp_path, monkeypatch, capsys):
     """`jsnap cache` reports files and bytes per folder (lock files not counted) and
     `--clear [FOLDER ...]` removes the named folders' files only, leaving the locks; nothing
     outside jsnap's folders is listed or removed."""
-    from jsnap._cli import main as cli_main
+    from jsnap._apps.cli import main as cli_main
 
     monkeypatch.setenv("JSNAP_CACHE", str(tmp_path))
     (tmp_path / "neural_sdf").mkdir()

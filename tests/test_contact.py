@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 import jsnap  # noqa: F401  (enables x64)
-from jsnap._contact import (
+from jsnap._core.contact import (
     ContactSolution,
     _spd_inverse,
     kkt_residual,
@@ -28,7 +28,7 @@ from jsnap._contact import (
     solve_spg,
     symmetric_squeeze_problem,
 )
-from jsnap._implicit import implicit_solver
+from jsnap._core.implicit import implicit_solver
 
 # Derandomised so that CI sees the same examples every run; few examples, since every one is a
 # full solve. Solver functions are jitted once per shape (C = 8, C = 24) and shared.

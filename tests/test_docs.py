@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import jsnap
-from jsnap._cli import main as cli_main
+from jsnap._apps.cli import main as cli_main
 
 ROOT = Path(__file__).resolve().parents[1]
 # The default motion (10 mm/s, 233 steps) on a coarse P1 mesh, in float64: the measurement

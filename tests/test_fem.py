@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from jsnap import _fem
-from jsnap._geometry import Cantilever, mesh_box, mesh_cantilever
+from jsnap._build import fem as _fem
+from jsnap._geometry.cantilever import Cantilever, mesh_box, mesh_cantilever
 
 from .conftest import ARM
 

@@ -15,7 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jsnap._geometry import (
+from jsnap._geometry.cantilever import (
     Cantilever,
     MeshQualityError,
     TetMesh,

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import jsnap
-from jsnap._cli import main as cli_main
+from jsnap._apps.cli import main as cli_main
 
 COARSE = {
     "solver.element": "P1",
@@ -92,7 +92,7 @@ def test_identify_recovers_E_from_noise_free_data(coarse, tmp_path):
 
 def test_resampling_a_fast_noisy_sensor():
     """A 10 kHz record is averaged over each 1 ms step (noise down by ~sqrt(10))."""
-    from jsnap._identify import Measurement, resample
+    from jsnap._apps.identify import Measurement, resample
 
     rng = np.random.default_rng(0)
     t = np.arange(1, 2001) * 1e-4

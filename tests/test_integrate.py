@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import scipy.linalg as sl
 
-from jsnap import _fem
-from jsnap import _integrate as I
-from jsnap._geometry import mesh_box
+from jsnap._build import fem as _fem
+from jsnap._core import pmi as I
+from jsnap._geometry.cantilever import mesh_box
 
 RHO = 1.05e-9
 ARM = dict(L=10.0, h=1.2, b=4.0)  # as in conftest.py

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import jsnap
-from jsnap import _modal
+from jsnap._build import modal as _modal
 
 SMALL = {
     "solver.mesh_size": 2.0,

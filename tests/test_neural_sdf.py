@@ -1,4 +1,4 @@
-"""Neural signed distance of the plug (jsnap._neural_sdf). Lengths in mm.
+"""Neural signed distance of the plug (jsnap._build.neural_sdf). Lengths in mm.
 
 Small nets on a small mesh, so that the whole file runs in well under a minute; the accuracy of
 the default net on the default plug is measured by benchmarks/sdf_accuracy.py.
@@ -14,10 +14,10 @@ import pytest
 import trimesh
 
 import jsnap
-from jsnap import _neural_sdf as nsdf
-from jsnap._cli import _SDF_SETTINGS
-from jsnap._cli import main as cli_main
-from jsnap._sdf import MeshSDF, mesh_sdf_and_normal, rounded_box_mesh
+from jsnap._build import neural_sdf as nsdf
+from jsnap._apps.cli import _SDF_SETTINGS
+from jsnap._apps.cli import main as cli_main
+from jsnap._core.sdf import MeshSDF, mesh_sdf_and_normal, rounded_box_mesh
 
 # A plug-like rounded block (428 triangles) and settings that train in a couple of seconds.
 HALF = np.array([0.5, 1.0, 0.4])
@@ -281,8 +281,8 @@ def test_shipped_weights_are_the_default_plugs(tmp_path, monkeypatch):
     within the training-time accuracy of the exact SDF of the plug that the default scene
     builds now. Where that plug's mesh has the shipped key they are used without training;
     where a mesh library triangulates it differently (another key), the plug is trained."""
-    from jsnap._model import _plug_geometry
-    from jsnap._scene import connector_geometry
+    from jsnap._build.model import _plug_geometry
+    from jsnap._geometry.scene import connector_geometry
 
     files = sorted(nsdf.SHIPPED.glob("*.npz"))
     assert len(files) == 1
@@ -373,8 +373,8 @@ def test_cli_train_sdf(mesh, tmp_path, monkeypatch, capsys):
 
 
 def test_scene_with_neural_sdf_builds_and_dispatches(tmp_path, monkeypatch):
-    from jsnap import _model
-    from jsnap._sim import _plug_sdf
+    from jsnap._build import model as _model
+    from jsnap._core.step import _plug_sdf
 
     monkeypatch.setenv("JSNAP_CACHE", str(tmp_path / "cache"))
     # The default settings take a minute to train; the wiring is the same with tiny ones.
@@ -409,7 +409,7 @@ def test_step_query_is_the_network_where_contact_needs_it(mesh, trained, n_conta
     (300), under ``vmap`` (every block evaluated) and with fewer points than the blocks hold."""
     from types import SimpleNamespace
 
-    from jsnap import _sim
+    from jsnap._core import step as _sim
 
     net = trained[0].astype(jnp.float64)
     margin = 0.02

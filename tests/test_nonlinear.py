@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from jsnap import _nonlinear as N
-from jsnap._integrate import Material
-from jsnap._scene import connector_geometry, load_scene
+from jsnap._core import nonlinear as N
+from jsnap._core.pmi import Material
+from jsnap._geometry.scene import connector_geometry, load_scene
 
 RHO, NU, DT = 1.05e-9, 0.35, 1e-3
 

@@ -15,9 +15,9 @@ import scipy.linalg as sla
 import scipy.sparse.linalg as spla
 
 import jsnap
-from jsnap import _reduce as R
-from jsnap._fem import lame
-from jsnap._scene import SceneError
+from jsnap._build import reduce as R
+from jsnap._build.fem import lame
+from jsnap._geometry.scene import SceneError
 
 SMALL = {
     "solver.mesh_size": 2.0,

@@ -1,4 +1,4 @@
-"""Signed distance functions of the plug (jsnap._sdf). Lengths in mm."""
+"""Signed distance functions of the plug (jsnap._core.sdf). Lengths in mm."""
 
 import warnings
 
@@ -9,7 +9,7 @@ import pytest
 import trimesh
 
 import jsnap  # noqa: F401  (enables float64)
-from jsnap._sdf import (
+from jsnap._core.sdf import (
     MeshSDF,
     mesh_sdf,
     mesh_sdf_and_normal,
@@ -354,7 +354,7 @@ def test_scene_mesh_query_exact_where_contact_needs_it(plug, n_contact, dtype):
     """
     from types import SimpleNamespace
 
-    from jsnap import _sim
+    from jsnap._core import step as _sim
 
     mesh, sdf = plug
     margin = 0.02

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 import jsnap
-from jsnap._cli import main as cli_main
-from jsnap._scene import SceneError
+from jsnap._apps.cli import main as cli_main
+from jsnap._geometry.scene import SceneError
 
 COARSE = {"solver.mesh_size": 1.2, "solver.dtype": "float64", "motion.speed": 20.0}
 # CalculiX, linear geometry, frictionless, default hook (jsnap/data/calculix-cantilever).
@@ -186,7 +186,7 @@ def test_bad_rollout_arguments_are_errors(default_coarse):
     prepared = jsnap.prepare(model)
     with pytest.raises(ValueError, match="both params and prepared"):
         jsnap.rollout(model, model.params.replace(E=1000.0), controls=good, prepared=prepared)
-    state = jsnap._sim.init_state(model)
+    state = jsnap._core.step.init_state(model)
     with pytest.raises(ValueError, match=r"control must be \(3,\)"):
         jsnap.step(model, prepared, state, good[:2])
 
@@ -234,7 +234,7 @@ def test_predict_correct_keeps_released_points_out_of_the_plug(released):
     plug, so that no candidate point ends a step deeper in the plug than the contact margin.
     (Without the second solve this scene ends steps 0.25 mm deep, peak 3.7 kN instead of 0.28.)
     """
-    from jsnap._sim import _plug_sdf
+    from jsnap._core.step import _plug_sdf
 
     model = released
     res = jsnap.rollout(model, keep_x=True)
@@ -246,7 +246,7 @@ def test_predict_correct_keeps_released_points_out_of_the_plug(released):
 
 def test_differentiated_or_batched_inputs_are_recognised():
     """``step``'s rolled predict-correct loop is chosen unless JAX differentiates or batches the inputs."""
-    from jsnap._sim import _differentiated_or_batched
+    from jsnap._core.step import _differentiated_or_batched
 
     seen = []
 

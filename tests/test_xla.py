@@ -1,4 +1,4 @@
-"""The XLA:CPU small-loop option jsnap sets on import (jsnap._xla)."""
+"""The XLA:CPU small-loop option jsnap sets on import (jsnap._apps.xla)."""
 
 import os
 import subprocess
@@ -7,7 +7,7 @@ import textwrap
 
 import pytest
 
-from jsnap import _xla
+from jsnap._apps import xla as _xla
 
 OPTION = f"{_xla.SMALL_LOOP_OPTION}={_xla.SMALL_LOOP_BYTES}"
 

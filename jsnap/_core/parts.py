@@ -32,8 +32,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from jsnap._fem import lame
-from jsnap._integrate import Material, PMIOperator, SparseBlocks, energy, pmi_operator, pmi_rhs
+from jsnap._build.fem import lame
+from jsnap._core.pmi import Material, PMIOperator, SparseBlocks, energy, pmi_operator, pmi_rhs
 
 __all__ = ["ContactRows", "FullSocket"]
 

@@ -15,15 +15,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jsnap._fem import Assembly, assemble
-from jsnap._geometry import Cantilever, TetMesh, mesh_cantilever
-from jsnap._integrate import Material, SparseBlocks
-from jsnap._modal import ModalSocket, load_or_compute, socket_from_modes
-from jsnap._neural_sdf import NeuralSDF, load_or_train
-from jsnap._reduce import ReducedSocket, build_socket
-from jsnap._scene import Scene, SceneError, connector_geometry
-from jsnap._sdf import MeshSDF, rounded_box_mesh
-from jsnap._socket import FullSocket
+from jsnap._build.fem import Assembly, assemble
+from jsnap._geometry.cantilever import Cantilever, TetMesh, mesh_cantilever
+from jsnap._core.pmi import Material, SparseBlocks
+from jsnap._build.modal import ModalSocket, load_or_compute, socket_from_modes
+from jsnap._build.neural_sdf import NeuralSDF, load_or_train
+from jsnap._build.reduce import ReducedSocket, build_socket
+from jsnap._geometry.scene import Scene, SceneError, connector_geometry
+from jsnap._core.sdf import MeshSDF, rounded_box_mesh
+from jsnap._core.parts import FullSocket
 
 __all__ = ["Model", "Params", "build"]
 
@@ -103,7 +103,7 @@ class Model(eqx.Module):
     Array fields (traced):
         socket: the socket's linear model as the contact step sees it (``_socket``): the
             full FEM (:class:`FullSocket`), the same in modal coordinates
-            (:class:`jsnap._modal.ModalSocket`) or a reduced model.
+            (:class:`jsnap._build.modal.ModalSocket`) or a reduced model.
         sample_rest: (P, 3) rest positions of contact candidate points on the socket, mm.
         sample_stencil: (P, 8, 3) rest positions of each point's normal stencils, mm: the
             deformed normals of its side and (at a corner) of the other side are

@@ -39,7 +39,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
-from jsnap._fem import lame
+from jsnap._build.fem import lame
 
 __all__ = [
     "Material",

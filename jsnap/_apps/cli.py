@@ -94,7 +94,7 @@ def simulate(args) -> int:
     import jax
 
     import jsnap
-    from jsnap._geometry import write_vtu_series
+    from jsnap._geometry.cantilever import write_vtu_series
 
     t0 = time.perf_counter()
     scene = jsnap.load_scene(args.scene)
@@ -109,7 +109,7 @@ def simulate(args) -> int:
     t_total = time.perf_counter() - t0
     # Steady-state stepping rate, compile excluded: re-run a few chunks of the size the progress
     # run compiled (cached), rather than the whole motion again.
-    from jsnap._sim import progress_chunk
+    from jsnap._core.step import progress_chunk
 
     n = model.n_steps
     chunk = progress_chunk(n)
@@ -226,16 +226,16 @@ _SDF_SETTINGS = {
 
 def train_sdf(args) -> int:
     """``jsnap train-sdf [MESH]``: train (or load from the cache) the neural SDF of a plug."""
-    from jsnap import _neural_sdf as nsdf
+    from jsnap._build import neural_sdf as nsdf
 
     try:
         settings = {k: getattr(args, k) for k in _SDF_SETTINGS if getattr(args, k) is not None}
         config = nsdf.NeuralSDFConfig(**settings)
         if args.mesh is None:
             import jsnap
-            from jsnap._model import _plug_geometry
-            from jsnap._scene import connector_geometry
-            from jsnap._sdf import rounded_box_mesh
+            from jsnap._build.model import _plug_geometry
+            from jsnap._geometry.scene import connector_geometry
+            from jsnap._core.sdf import rounded_box_mesh
 
             scene = jsnap.load_scene(args.scene)
             half, radius, _ = _plug_geometry(scene, connector_geometry(scene))
@@ -289,7 +289,7 @@ def _size(n: int) -> str:
 
 def cache_command(args) -> int:
     """``jsnap cache [--clear [FOLDER ...]] [--json]``: what the cache holds; remove it."""
-    from jsnap import _cache
+    from jsnap._build import cache as _cache
 
     if args.clear is not None:
         try:
@@ -369,24 +369,24 @@ def main(argv=None) -> int:
     if args.command == "cache":
         return cache_command(args)
     if args.command in ("simulate", "train-sdf", "fit"):
-        from jsnap._cache import use_compilation_cache
+        from jsnap._build.cache import use_compilation_cache
 
         use_compilation_cache()
     if args.command == "train-sdf":
         return train_sdf(args)
     if args.command == "fit":
-        from jsnap._identify import fit_command
+        from jsnap._apps.identify import fit_command
 
         return fit_command(args)
     if args.command == "bench":
-        from jsnap import _bench
+        from jsnap._apps import bench as _bench
 
         try:
             return _bench.main(args.names, args.quick, args.list, args.jobs)
         except FileNotFoundError as err:
             print(f"jsnap: error: {err}", file=sys.stderr)
             return 2
-    from jsnap._scene import SceneError
+    from jsnap._geometry.scene import SceneError
 
     try:
         return simulate(args)

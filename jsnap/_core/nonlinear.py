@@ -41,9 +41,9 @@ import jax.numpy as jnp
 import numpy as np
 import skfem
 
-from jsnap._fem import Assembly, assemble, lame, solve_static, traction_load
-from jsnap._geometry import Cantilever, mesh_cantilever
-from jsnap._integrate import Material, SparseBlocks, energy, pmi_operator, pmi_step
+from jsnap._build.fem import Assembly, assemble, lame, solve_static, traction_load
+from jsnap._geometry.cantilever import Cantilever, mesh_cantilever
+from jsnap._core.pmi import Material, SparseBlocks, energy, pmi_operator, pmi_step
 
 __all__ = [
     "METHODS",

@@ -48,8 +48,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jsnap._model import Model, Params
-from jsnap._sim import rollout
+from jsnap._build.model import Model, Params
+from jsnap._core.step import rollout
 
 __all__ = ["FIT_PARAMETERS", "FitResult", "Measurement", "MeasurementError", "identify", "load_measurement"]
 
@@ -873,8 +873,8 @@ def fit_command(args) -> int:
     """``jsnap fit SCENE.toml MEASURED.csv [--fit ...] [--init ...] [--out DIR] [--json]``."""
     import sys
 
-    from jsnap._model import build
-    from jsnap._scene import SceneError, load_scene
+    from jsnap._build.model import build
+    from jsnap._geometry.scene import SceneError, load_scene
 
     try:
         names = [s.strip() for s in args.fit.split(",") if s.strip()]

@@ -72,10 +72,10 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import skfem
 
-from jsnap._cache import cache_dir, load_or_make, read_npz, save_npz
-from jsnap._fem import _ELEMENTS, Assembly, _k_lam, _k_mu, _m1, lame
-from jsnap._integrate import Material, spd_inverse
-from jsnap._socket import ContactRows
+from jsnap._build.cache import cache_dir, load_or_make, read_npz, save_npz
+from jsnap._build.fem import _ELEMENTS, Assembly, _k_lam, _k_mu, _m1, lame
+from jsnap._core.pmi import Material, spd_inverse
+from jsnap._core.parts import ContactRows
 
 __all__ = [
     "FORMAT_VERSION",
@@ -141,7 +141,7 @@ class Segmentation:
 
 def _face_owners(asm: Assembly, faces: np.ndarray) -> np.ndarray:
     """(f,) element owning each boundary face (f, 3) (vertex ids)."""
-    from jsnap._geometry import _TET_FACES
+    from jsnap._geometry.cantilever import _TET_FACES
 
     cells = asm.mesh.cells
     all_faces = np.sort(cells[:, _TET_FACES].reshape(-1, 3), axis=1)
@@ -650,7 +650,7 @@ class ReducedSocket(ContactRows):
 
     The state ``x`` (r,) stacks every segment's coordinates: its nodal dofs (segmented) or its
     reduced coordinates ``z_i`` with ``x_i = V_i z_i`` (reduced). Implements the interface of
-    :class:`jsnap._socket.FullSocket`. All blocks are parameter-free, so every method is exact
+    :class:`jsnap._core.parts.FullSocket`. All blocks are parameter-free, so every method is exact
     and differentiable in the material (E, nu, rho, alpha, beta).
 
     Attributes:
@@ -1027,7 +1027,7 @@ def load_or_build(
     reported with a warning and rebuilt.
 
     Processes that build the same model at once build it once: the others wait and load it
-    (:func:`jsnap._cache.load_or_make`).
+    (:func:`jsnap._build.cache.load_or_make`).
 
     Returns:
         ``(arrays, meta)``; meta holds ``orders``, ``key``, ``path``, ``cached``, ``seconds``

@@ -1,6 +1,6 @@
 """Neural signed distance of the plug: a Flax MLP trained on exact mesh distances.
 
-A drop-in for the exact SDFs of :mod:`jsnap._sdf`, with the same convention: ``φ(p)`` in mm,
+A drop-in for the exact SDFs of :mod:`jsnap._core.sdf`, with the same convention: ``φ(p)`` in mm,
 negative inside, for points ``p`` in the plug's frame; the normal is ``∇φ`` (by ``jax.vjp``),
 normalised. :func:`neural_sdf_and_normal` is a pure JAX function of ``(net, points)``: it jits,
 vmaps and differentiates (w.r.t. the points and the weights).
@@ -14,7 +14,7 @@ true distance, so points far from the plug can never fake a contact.
 Training (host, once per mesh and settings, :func:`train`): points sampled near the surface
 (most of them: offsets along the face normals, half with σ = band/4, half with σ = band) and
 uniformly in the domain, labelled with exact signed distances from our JAX triangle-mesh SDF
-(:class:`jsnap._sdf.MeshSDF`); Adam with a warm-up + cosine learning-rate schedule on an L1
+(:class:`jsnap._core.sdf.MeshSDF`); Adam with a warm-up + cosine learning-rate schedule on an L1
 loss, points farther than ``band`` from the surface weighted down (only contact-relevant
 accuracy matters). Weights are saved as ``.npz`` with a format version, the architecture, the
 normalisation, the hash of the mesh and settings and a checksum (:func:`save`, :func:`load`),
@@ -41,9 +41,9 @@ import jax.numpy as jnp
 import numpy as np
 import trimesh
 
-from ._cache import cache_dir, load_or_make, read_npz, save_npz
-from ._sdf import MeshSDF, mesh_sdf_and_normal
-from ._util import safe_norm
+from jsnap._build.cache import cache_dir, load_or_make, read_npz, save_npz
+from jsnap._core.sdf import MeshSDF, mesh_sdf_and_normal
+from jsnap._core.util import safe_norm
 
 __all__ = [
     "FORMAT_VERSION",
@@ -74,7 +74,7 @@ ACTIVATIONS = ("softplus", "silu", "gelu", "tanh")
 # Weights shipped with the package (read-only), used when the cache has none for the key: the
 # default plug's, so that a first run does not spend the training (~30 s on 2 cores) and every
 # machine uses the weights that the committed benchmark results were made with.
-SHIPPED = Path(__file__).parent / "data" / "neural_sdf"
+SHIPPED = Path(__file__).parents[1] / "data" / "neural_sdf"
 
 
 class NeuralSDFFileError(ValueError):
@@ -721,7 +721,7 @@ def load_or_train(
     settings) are used, read-only, before anything is trained.
 
     Processes that ask for the same weights at once train them once: the others wait and load
-    them (:func:`jsnap._cache.load_or_make`).
+    them (:func:`jsnap._build.cache.load_or_make`).
 
     Args:
         mesh: ``trimesh.Trimesh``, watertight and consistently wound, in mm.

@@ -252,8 +252,8 @@ def _split(dotted: str) -> tuple[str, str]:
 
 
 def connector_geometry(scene: Scene):
-    """The scene's connector as a :class:`jsnap._geometry.Cantilever` (validated)."""
-    from jsnap._geometry import Cantilever
+    """The scene's connector as a :class:`jsnap._geometry.cantilever.Cantilever` (validated)."""
+    from jsnap._geometry.cantilever import Cantilever
 
     c = scene["connector"]
     keys = ("length", "thickness", "tip_thickness", "width", "undercut", "lead_angle")

@@ -20,7 +20,7 @@ import scipy.sparse as sp
 import skfem
 from skfem.helpers import ddot, div, dot, sym_grad
 
-from jsnap._geometry import TetMesh
+from jsnap._geometry.cantilever import TetMesh
 
 __all__ = ["Assembly", "assemble", "lame", "solve_static", "traction_load"]
 

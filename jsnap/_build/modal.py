@@ -5,7 +5,7 @@ With ``K(E, nu0) = E K1`` and ``M = rho M1``, the generalised eigenvectors ``K1 
 
     c ubar = (2/T) rho u - E w q + Phi' f,     c = rho (2/T + alpha) + E w (beta + T/2),
 
-one multiply per mode instead of the dense ``S^-1`` pass of :class:`jsnap._socket.FullSocket`
+one multiply per mode instead of the dense ``S^-1`` pass of :class:`jsnap._core.parts.FullSocket`
 (Rayleigh damping ``D = alpha M + beta K`` is diagonal too). The same discrete equations: no
 mode is dropped, nothing is approximated. The step reads the modes only at the contact nodes
 (the interpolating nodes of the candidate points and their stencils: 182 of the default mesh's
@@ -33,11 +33,11 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg as sla
 
-from jsnap._cache import cache_dir, load_or_make, read_npz, save_npz
-from jsnap._fem import lame
-from jsnap._integrate import Material
-from jsnap._reduce import _hash_arrays, _wrench_rows
-from jsnap._socket import ContactRows
+from jsnap._build.cache import cache_dir, load_or_make, read_npz, save_npz
+from jsnap._build.fem import lame
+from jsnap._core.pmi import Material
+from jsnap._build.reduce import _hash_arrays, _wrench_rows
+from jsnap._core.parts import ContactRows
 
 __all__ = ["ModalOperator", "ModalSocket", "ModesFileError", "load_or_compute", "modes", "socket_from_modes"]
 
@@ -77,7 +77,7 @@ class ModalOperator(eqx.Module):
 
 class ModalSocket(ContactRows):
     """Full linear FEM socket in modal coordinates; implements the interface of
-    :class:`jsnap._socket.FullSocket` with the state ``x = q``, ``v = u`` (modal).
+    :class:`jsnap._core.parts.FullSocket` with the state ``x = q``, ``v = u`` (modal).
 
     Attributes:
         w: (n,) eigenvalues of ``K(1, nu0)`` with respect to ``M1``, ascending.
@@ -85,7 +85,7 @@ class ModalSocket(ContactRows):
         out_k, out_m1: (6, n) base force (N) and moment about the base centroid (N mm) per unit
             of ``K(1, nu0) Phi`` and ``M1 Phi`` action.
         recon: (n, n) ``Phi``: free-dof displacement per unit modal coordinate (outputs only).
-        node_rows and the contact points' fields: see :class:`jsnap._socket.ContactRows`
+        node_rows and the contact points' fields: see :class:`jsnap._core.parts.ContactRows`
             (``node_rows`` is ``Phi`` at the contact nodes' dofs).
     """
 
@@ -140,7 +140,7 @@ class ModalSocket(ContactRows):
 
     def base_wrench(self, op: ModalOperator, material: Material, x, v, v_new, vbar):
         """Reaction of the fixed base over the step at the interval's midpoint, as
-        :class:`jsnap._socket.FullSocket` computes it, from the modal output rows."""
+        :class:`jsnap._core.parts.FullSocket` computes it, from the modal output rows."""
         dtype = x.dtype
         ok = (material.E * self.out_k).astype(dtype)
         om = (material.rho * self.out_m1).astype(dtype)
@@ -252,7 +252,7 @@ def load(path, key: str):
 def load_or_compute(asm, nu: float, *, progress: bool = False):
     """``(w, Phi, meta)`` for ``asm`` at ``nu``: from the cache, or computed (:func:`modes`) and
     cached. A file that cannot be used is reported with a warning and replaced; processes that
-    need the same modes at once compute them once (:func:`jsnap._cache.load_or_make`)."""
+    need the same modes at once compute them once (:func:`jsnap._build.cache.load_or_make`)."""
     key = cache_key(asm, nu)
     path = cache_path(key)
 

@@ -345,7 +345,7 @@ BENCHMARKS = [
 def benchmarks_dir() -> Path:
     env = os.environ.get("JSNAP_BENCHMARKS")
     candidates = [Path(env)] if env else []
-    candidates += [Path.cwd() / "benchmarks", Path(__file__).resolve().parent.parent / "benchmarks"]
+    candidates += [Path.cwd() / "benchmarks", Path(__file__).resolve().parents[2] / "benchmarks"]
     for c in candidates:
         if c.is_dir():
             return c

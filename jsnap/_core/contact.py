@@ -40,7 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jsnap._util import safe_norm
+from jsnap._core.util import safe_norm
 
 # Power iterations for the step size. W is small (3C ≤ a few hundred), so 50 matvecs cost
 # about as much as 50 solver iterations; the estimate they give is a lower bound of ‖W‖, hence

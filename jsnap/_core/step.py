@@ -25,12 +25,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jsnap._contact import ContactSolution, solve_admm, solve_apgd, solve_pgs, solve_spg
-from jsnap._implicit import implicit_solver
-from jsnap._model import Model, Params
-from jsnap._neural_sdf import neural_sdf_and_normal
-from jsnap._sdf import mesh_sdf_and_normal, rounded_box_sdf_and_normal
-from jsnap._util import safe_norm
+from jsnap._core.contact import ContactSolution, solve_admm, solve_apgd, solve_pgs, solve_spg
+from jsnap._core.implicit import implicit_solver
+from jsnap._build.model import Model, Params
+from jsnap._build.neural_sdf import neural_sdf_and_normal
+from jsnap._core.sdf import mesh_sdf_and_normal, rounded_box_sdf_and_normal
+from jsnap._core.util import safe_norm
 
 __all__ = ["Prepared", "Result", "State", "init_state", "prepare", "rollout", "step"]
 
@@ -316,7 +316,7 @@ def _least_along_path(model: Model, points, like):
     ``f`` of ``_PATH_CHECKS``: the predict-correct check of a solved step's straight path.
 
     For the analytic plug the fractions are a ``fori_loop``, which XLA:CPU compiles into one
-    kernel (a small loop, jsnap._xla) run on the calling thread. Written side by side, the four
+    kernel (a small loop, jsnap._apps.xla) run on the calling thread. Written side by side, the four
     queries are one loop fusion heavy enough in arithmetic that XLA splits it across the cores,
     and on the ~600-1000 points of a step handing half to the other core cost more than it
     saved: the 1344-dof reduced scene with light contact settings stepped in 173-181 against

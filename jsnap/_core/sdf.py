@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 import trimesh
 
-from ._util import safe_norm
+from jsnap._core.util import safe_norm
 
 __all__ = [
     "MeshSDF",

@@ -561,7 +561,7 @@ def write_vtu(
         point_data: name -> (n,) or (n, k) arrays.
         cell_data: name -> (m,) or (m, k) arrays.
     """
-    import meshio  # build-layer dependency; keep `import jsnap._geometry` light
+    import meshio  # build-layer dependency; keep `import jsnap._geometry.cantilever` light
 
     points = np.asarray(points, dtype=np.float64)
     cells = np.asarray(cells, dtype=np.int64)

@@ -31,7 +31,7 @@ from typing import TypeVar
 
 import numpy as np
 
-from jsnap._xla import switched_off
+from jsnap._apps.xla import switched_off
 
 __all__ = [
     "KINDS", "cache_dir", "checksum", "clear", "load_or_make", "read_npz", "save_npz", "usage",
