@@ -4,33 +4,58 @@ Units everywhere: mm, N, MPa, s, tonne (density in t/mm^3).
 
     import jsnap
     scene = jsnap.load_scene()            # the shipped default scene
-    model = jsnap.build(scene)            # host: mesh, assembly, contact samples
+    model = jsnap.build(scene)            # host: mesh, assembly, contact samples, reduction
     result = jsnap.rollout(model)         # pure JAX: jit, vmap, grad
     result.insertion_force                # (steps,) N
-    jax.grad(loss)(params)                # through contact (docs/differentiation.md)
+    jsnap.rollout_batch(model, params)    # many parameter sets, motions or start poses at once
     jsnap.identify(model, "measured.csv") # fit E, friction, damping to a measured force
+
+Importing jsnap changes no process-wide setting: it computes in 64 bits only inside its own
+functions (``jax.enable_x64`` scoped to each call), and XLA's CPU flags are an explicit opt-in
+(:func:`configure_xla_cpu`). Only the names below are public; ``jsnap._*`` is private.
 """
 
-from jsnap._apps import xla as _xla
+from jsnap._apps.xla import configure_xla_cpu
+from jsnap._core.model import Model
+from jsnap._core.params import Params
+from jsnap._core.rollout import Result, SimulationError, rollout, rollout_batch
+from jsnap._core.status import Flag
+from jsnap._core.step import Prepared, State, init_state, prepare, step
+from jsnap._geometry.scene import Scene, SceneError, SceneWarning, load_scene
 
-# XLA compiles the contact solvers' small loops into one kernel each (1.4-1.7x faster reduced steps); set
-# before JAX starts its CPU backend, unless the user's XLA_FLAGS say otherwise (jsnap._apps.xla).
-_xla.configure()
+__version__ = "0.2.0"
 
-import jax  # noqa: E402
+# The build layer (scikit-fem, meshio, trimesh, scipy) and the fitting application (optax) load
+# on first use, so that the kernels can be imported and run where those libraries are absent.
+_LAZY = {
+    "build": "jsnap._build.model",
+    "BuildError": "jsnap._build.model",
+    "identify": "jsnap._apps.identify",
+    "FitResult": "jsnap._apps.identify",
+    "Measurement": "jsnap._apps.identify",
+    "MeasurementError": "jsnap._apps.identify",
+    "load_measurement": "jsnap._apps.identify",
+}
 
-# The build is done in float64 (assembly, factorisations); rollouts cast to the dtype they
-# are asked for (float32 by default). Without x64 JAX would silently demote the build.
-jax.config.update("jax_enable_x64", True)
 
-from jsnap._apps.identify import FitResult, Measurement, MeasurementError, identify, load_measurement  # noqa: E402
-from jsnap._build.model import Model, Params, build  # noqa: E402
-from jsnap._geometry.scene import Scene, SceneError, load_scene  # noqa: E402
-from jsnap._core.step import Prepared, Result, State, init_state, prepare, rollout, step  # noqa: E402
+def __getattr__(name):
+    if name in _LAZY:
+        import importlib
 
-__version__ = "0.1.0"
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'jsnap' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))
+
+
 __all__ = [
+    "BuildError",
     "FitResult",
+    "Flag",
     "Measurement",
     "MeasurementError",
     "Model",
@@ -39,13 +64,17 @@ __all__ = [
     "Result",
     "Scene",
     "SceneError",
+    "SceneWarning",
+    "SimulationError",
     "State",
     "build",
+    "configure_xla_cpu",
     "identify",
     "init_state",
     "load_measurement",
     "load_scene",
     "prepare",
     "rollout",
+    "rollout_batch",
     "step",
 ]

@@ -1,26 +1,39 @@
-"""Shared fixtures: meshes and assemblies are built once per session (JAX compiles are slow)."""
+"""Shared fixtures: meshes and assemblies are built once per session (JAX compiles are slow).
+
+jsnap changes no process-wide JAX setting: tests of the public API run as a user's program does,
+with JAX's default 32-bit mode. Tests of internal kernels that compute in float64 on their own
+use the ``x64`` fixture (``jax.enable_x64`` for the test's duration), as jsnap's public entry
+points do internally.
+"""
 
 import os
 
+import jax
 import numpy as np
 import pytest
 
-import jsnap  # noqa: F401  (enables float64)
 from jsnap._build import fem as _fem
+from jsnap._build.fem import sparse_blocks
 from jsnap._geometry.cantilever import mesh_box
-from jsnap._core.pmi import SparseBlocks
 
 # The CLI tests call `main` in this process: keep its JAX compilation cache (a setting of the whole
-# process, see jsnap._build.cache.use_compilation_cache) from reaching every test after them.
+# process) from reaching every test after them.
 os.environ.setdefault("JSNAP_XLA_CACHE", "0")
 
-# The straight reference arm of refs/calculix-cantilever (tests/data/README.md).
+# The straight reference arm of the CalculiX comparison (jsnap/data/calculix-cantilever).
 ARM = dict(L=10.0, h=1.2, b=4.0)
+
+
+@pytest.fixture
+def x64():
+    """JAX's 64-bit types for the test's duration."""
+    with jax.enable_x64(True):
+        yield
 
 
 def free_blocks(asm):
     f = asm.free
-    return SparseBlocks.from_scipy(*(m[f][:, f] for m in (asm.K_lam, asm.K_mu, asm.M1)))
+    return sparse_blocks(*(m[f][:, f] for m in (asm.K_lam, asm.K_mu, asm.M1)))
 
 
 @pytest.fixture(scope="session")

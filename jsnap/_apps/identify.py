@@ -48,8 +48,10 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jsnap._build.model import Model, Params
-from jsnap._core.step import rollout
+from jsnap._core.model import Model
+from jsnap._core.params import Params
+from jsnap._core.rollout import rollout
+from jsnap._core.util import x64
 
 __all__ = ["FIT_PARAMETERS", "FitResult", "Measurement", "MeasurementError", "identify", "load_measurement"]
 
@@ -398,10 +400,10 @@ class _Problem(eqx.Module):
         t = (jnp.arange(self.n_steps) + 1) * self.dt
         z = jnp.interp(t - shift, self.t_table, self.z_table) + offset
         controls = jnp.concatenate([jnp.broadcast_to(self.xy, (self.n_steps, 2)), z[:, None]], axis=1)
-        model = self.model
+        start = self.model.plug_start
         if "plug_offset" in vals:
-            model = eqx.tree_at(lambda m: m.plug_start, model, model.plug_start.at[2].add(offset))
-        return rollout(model, params, controls=controls, dtype="float64").insertion_force
+            start = start.at[2].add(offset)
+        return rollout(self.model, params, controls=controls, plug_start=start, dtype="float64").insertion_force
 
 
 class _Objective(eqx.Module):
@@ -633,7 +635,7 @@ def _problem(model: Model, base: Params, names, n_steps: int) -> _Problem:
         names=tuple(names),
         n_steps=n_steps,
         dt=model.dt,
-        step_travel=model.speed * model.dt,
+        step_travel=float(abs(traj[1, 2] - traj[0, 2])),
     )
 
 
@@ -677,6 +679,7 @@ def _check_force_scale(meas: Measurement, sim_peak: float, measured_peak: float)
         )
 
 
+@x64
 def identify(
     model: Model,
     measured: Measurement | str | Path,

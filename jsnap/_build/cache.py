@@ -1,8 +1,13 @@
-"""The on-disk cache of built artefacts (trained neural SDFs, reduced models, the full socket's
-modes) and, for the command line, of JAX's compiled programs.
+"""The on-disk cache of built artefacts (trained neural SDFs, reduced models, a part's modes)
+and, for the command line, of JAX's compiled programs.
 
-Files live under :func:`cache_dir` (``$JSNAP_CACHE`` or ``~/.cache/jsnap``), named by a hash of
-everything they depend on, and are written atomically by their modules. :func:`load_or_make`
+Every artefact is one file in one format (:func:`save_artefact`, :func:`load_artefact`): an
+``.npz`` of arrays with the format's name and version, the artefact's kind and key, metadata as
+JSON and a SHA-256 checksum of all of it. Files live under :func:`cache_dir`
+(``$JSNAP_CACHE`` or ``~/.cache/jsnap``), one folder per kind, named by the key: a hash of
+everything the artefact depends on (:class:`KeyHash`). A file that is unreadable, corrupt, of
+another format version, of another kind or for another key is never used: :func:`cached`
+reports it with a warning and builds the artefact again. :func:`load_or_make`
 adds what several processes need when they build the same scene at once (parallel benchmark
 workers, a pool of RL environments): one of them builds the file while the others wait for it
 and load it, instead of each spending the build (the neural SDF's training is ~30 s on 2 cores).
@@ -31,12 +36,27 @@ from typing import TypeVar
 
 import numpy as np
 
-from jsnap._apps.xla import switched_off
-
 __all__ = [
-    "KINDS", "cache_dir", "checksum", "clear", "load_or_make", "read_npz", "save_npz", "usage",
+    "FORMAT", "FORMAT_VERSION", "KINDS", "ArtefactError", "KeyHash", "artefact_path", "cache_dir", "cached",
+    "checksum", "clear", "load_artefact", "load_or_make", "save_artefact", "switched_off", "usage",
     "use_compilation_cache",
 ]  # fmt: skip
+
+# The one file format of every cached artefact; bump the version when the layout of a file or
+# the meaning of what it stores changes (older files are then rebuilt).
+FORMAT = "jsnap-artefact"
+FORMAT_VERSION = 1
+
+
+class ArtefactError(ValueError):
+    """A cached artefact file that cannot be used (unreadable, corrupt, another format version,
+    kind or key); the message names the file and why."""
+
+
+def switched_off(name: str) -> bool:
+    """Whether the environment variable ``name`` (an on-by-default switch such as
+    ``JSNAP_XLA_CACHE``) says off: 0, false, no or off."""
+    return os.environ.get(name, "1").strip().lower() in ("0", "false", "no", "off")
 
 T = TypeVar("T")
 
@@ -50,8 +70,8 @@ def cache_dir() -> Path:
 # The cache's folders: what each holds.
 KINDS = {
     "neural_sdf": "trained neural SDF weights (jsnap train-sdf, solver.sdf = neural)",
-    "reduced": "segmented and reduced socket models (solver.method = segmented | reduced)",
-    "modal": "the full socket's modes (solver.method = modal)",
+    "reduced": "reduced part models (solver.method = reduced)",
+    "modal": "a part's modes (the modal part)",
     "xla": "JAX's compiled programs, kept by the command line (use_compilation_cache)",
 }
 
@@ -153,21 +173,50 @@ def checksum(meta_json: str, arrays: dict) -> str:
     return h.hexdigest()
 
 
-def save_npz(path, format_name: str, version: int, meta: dict, arrays: dict) -> Path:
-    """Write ``arrays`` to ``path`` (``.npz``) atomically (a temporary file beside it, then a
-    rename: a reader never sees half a file), with ``format`` and ``format_version``, ``meta``
-    as JSON and the :func:`checksum` of both, which the module's reader verifies."""
+class KeyHash:
+    """SHA-256 of everything an artefact depends on: JSON-able settings and arrays (dtype, shape
+    and bytes), in the order given. The format's version is part of every key."""
+
+    def __init__(self, kind: str):
+        self._h = hashlib.sha256(json.dumps(dict(format=FORMAT, version=FORMAT_VERSION, kind=kind)).encode())
+
+    def settings(self, value) -> KeyHash:
+        self._h.update(json.dumps(value, sort_keys=True).encode())
+        return self
+
+    def arrays(self, *arrays) -> KeyHash:
+        for a in arrays:
+            a = np.ascontiguousarray(a)
+            self._h.update(f"{a.dtype.str}|{a.shape}".encode())
+            self._h.update(a.tobytes())
+        return self
+
+    def hexdigest(self) -> str:
+        return self._h.hexdigest()
+
+
+def artefact_path(kind: str, key: str) -> Path:
+    """``cache_dir()/<kind>/<first 32 hex digits of key>.npz``."""
+    if kind not in KINDS or kind == "xla":
+        raise ValueError(f"unknown artefact kind {kind!r}")
+    return cache_dir() / kind / f"{key[:32]}.npz"
+
+
+def save_artefact(path, kind: str, key: str, meta: dict, arrays: dict) -> Path:
+    """Write an artefact to ``path`` (``.npz``) atomically (a temporary file beside it, then a
+    rename: a reader never sees half a file): its arrays, the format's name and version, its
+    ``kind`` and ``key``, ``meta`` as JSON and the :func:`checksum` of all of them."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    arrays = {k: np.asarray(v) for k, v in arrays.items()}
-    meta_json = json.dumps(meta, sort_keys=True)
+    arrays = {k: np.asarray(v) for k, v in arrays.items() if v is not None}
+    meta_json = json.dumps(dict(meta, kind=kind, key=key), sort_keys=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as fh:
             np.savez(
                 fh,
-                format=np.asarray(format_name),
-                format_version=np.asarray(version),
+                format=np.asarray(FORMAT),
+                format_version=np.asarray(FORMAT_VERSION),
                 meta=np.asarray(meta_json),
                 checksum=np.asarray(checksum(meta_json, arrays)),
                 **arrays,
@@ -180,21 +229,32 @@ def save_npz(path, format_name: str, version: int, meta: dict, arrays: dict) -> 
     return path
 
 
-def read_npz(path: Path, format_name: str, version: int, what: str, bad) -> tuple[dict, dict]:
-    """``(arrays, meta)`` from a file written by :func:`save_npz`, after checking that it reads,
-    that it is a ``format_name`` file of ``version`` and that its checksum holds; ``bad(why)``
-    makes the module's exception (raised here), ``what`` names the kind of file in the message.
-    The caller checks that the file exists, and its key and arrays."""
+def load_artefact(path, kind: str, key: str | None = None) -> tuple[dict, dict]:
+    """``(arrays, meta)`` of an artefact written by :func:`save_artefact`, after checking that
+    it reads, that it is this format's version, that its checksum holds and that it is a
+    ``kind`` artefact for ``key`` (None: any key).
+
+    Raises:
+        FileNotFoundError: no such file.
+        ArtefactError: any other reason the file cannot be used.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+
+    def bad(why):
+        return ArtefactError(f"{path}: {why}")
+
     try:
         with np.load(path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
     except Exception as err:  # zipfile, zlib, OSError, ValueError ... all mean "unreadable"
         raise bad(f"unreadable or corrupt file ({type(err).__name__}: {err})") from None
-    if "format" not in data or str(data["format"]) != format_name:
-        raise bad(f"not a {what} (no 'format' = {format_name!r})")
+    if "format" not in data or str(data["format"]) != FORMAT:
+        raise bad(f"not a jsnap artefact (no 'format' = {FORMAT!r})")
     found = int(data.get("format_version", -1))
-    if found != version:
-        raise bad(f"format version {found}, this jsnap reads version {version}")
+    if found != FORMAT_VERSION:
+        raise bad(f"format version {found}, this jsnap reads version {FORMAT_VERSION}")
     try:
         meta_json = str(data.pop("meta"))
         stored = str(data.pop("checksum"))
@@ -205,7 +265,52 @@ def read_npz(path: Path, format_name: str, version: int, what: str, bad) -> tupl
         data.pop(k)
     if checksum(meta_json, data) != stored:
         raise bad("checksum mismatch: the file is corrupt")
+    if meta.get("kind") != kind:
+        raise bad(f"a {meta.get('kind')!r} artefact, not {kind!r}")
+    if key is not None and meta.get("key") != key:
+        raise bad(f"made for something else (key {str(meta.get('key'))[:12]}…, expected {key[:12]}…)")
     return data, meta
+
+
+def cached(kind: str, key: str, make, *, what: str, check=None, fresh: bool = False, shipped=None):
+    """The artefact ``kind``/``key`` from the cache, or made by ``make()`` and cached.
+
+    Args:
+        make: ``() -> (arrays, meta)``, the artefact built.
+        what: what is built, for messages.
+        check: ``(arrays, meta) -> None``, raising :class:`ArtefactError` when a file's content
+            does not fit (its arrays' shapes); optional.
+        fresh: make it even if a usable file exists.
+        shipped: a read-only file the package ships for this key, read when the cache has none.
+
+    Returns:
+        ``(arrays, meta)``; ``meta`` also holds ``path`` and ``cached`` (read, not made) and
+        ``shipped`` (read from the package).
+    """
+    path = artefact_path(kind, key)
+
+    def read(file):
+        try:
+            arrays, meta = load_artefact(file, kind, key)
+            if check is not None:
+                check(arrays, meta)
+        except FileNotFoundError:
+            return None
+        except ArtefactError as err:
+            warnings.warn(f"{err}; not using it: {what} is made again", stacklevel=4)
+            return None
+        return arrays, dict(meta, path=str(file), cached=True, shipped=file != path)
+
+    def made():
+        arrays, meta = make()
+        save_artefact(path, kind, key, meta, arrays)
+        return arrays, dict(meta, kind=kind, key=key, path=str(path), cached=False, shipped=False)
+
+    if not fresh and shipped is not None and not path.is_file() and Path(shipped).is_file():
+        found = read(Path(shipped))
+        if found is not None:
+            return found
+    return load_or_make(path, lambda: read(path), made, what=what, fresh=fresh)
 
 
 def _stamp(path: Path):

@@ -20,21 +20,18 @@ import scipy.sparse as sp
 import skfem
 from skfem.helpers import ddot, div, dot, sym_grad
 
-from jsnap._geometry.cantilever import TetMesh
+import jax
+import jax.numpy as jnp
 
-__all__ = ["Assembly", "assemble", "lame", "solve_static", "traction_load"]
+from jsnap._core.params import lame
+from jsnap._core.pmi import SparseBlocks
+from jsnap._geometry.mesh import TetMesh
+
+__all__ = [
+    "Assembly", "assemble", "lame", "output_rows", "solve_static", "sparse_blocks", "traction_load", "wrench_rows",
+]  # fmt: skip
 
 _ELEMENTS = {"P1": skfem.ElementTetP1, "P2": skfem.ElementTetP2}
-
-
-def lame(E, nu):
-    """Lamé parameters (lambda, mu) in MPa from Young's modulus E (MPa) and Poisson's ratio.
-
-    Works on floats, numpy and JAX arrays alike (it is used on both sides).
-    """
-    lam = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
-    mu = E / (2.0 * (1.0 + nu))
-    return lam, mu
 
 
 @skfem.BilinearForm
@@ -137,6 +134,53 @@ def assemble(mesh: TetMesh, element: str = "P2") -> Assembly:
     fixed = np.flatnonzero(np.repeat(base, 3))
     free = np.flatnonzero(~np.repeat(base, 3))
     return Assembly(element, mesh, nodes, cells, K_lam, K_mu, M1, fixed, free, basis)
+
+
+def wrench_rows(asm: Assembly) -> np.ndarray:
+    """(6, n_fixed) sum of the base reactions (n_fixed,) at the fixed dofs into force (N) and
+    moment about the base centroid (N mm)."""
+    pos = asm.nodes[asm.fixed[0::3] // 3]
+    o = pos - pos.mean(axis=0)
+    n = pos.shape[0]
+    S = np.zeros((6, 3 * n))
+    j = 3 * np.arange(n)
+    for a in range(3):
+        S[a, j + a] = 1.0
+    S[3, j + 2], S[3, j + 1] = o[:, 1], -o[:, 2]
+    S[4, j + 0], S[4, j + 2] = o[:, 2], -o[:, 0]
+    S[5, j + 1], S[5, j + 0] = o[:, 0], -o[:, 1]
+    return S
+
+
+def output_rows(asm: Assembly, V=None) -> dict:
+    """``out_kl, out_km, out_m1`` (6, r): the base wrench per unit of ``K_lam``, ``K_mu`` and
+    ``M1`` action of the coordinates ``x_free = V x`` (``V`` (n_free, r); None: the free dofs)."""
+    S = wrench_rows(asm)
+    out = {}
+    for name, block in (("out_kl", asm.K_lam), ("out_km", asm.K_mu), ("out_m1", asm.M1)):
+        rows = block[asm.fixed][:, asm.free]
+        out[name] = S @ (rows.toarray() if V is None else rows @ V)
+    return out
+
+
+def sparse_blocks(K_lam, K_mu, M1) -> SparseBlocks:
+    """:class:`SparseBlocks` (float64) from three scipy matrices on one sparsity pattern."""
+    a, b, c = (sp.coo_matrix(m) for m in (K_lam, K_mu, M1))
+    if not (np.array_equal(a.row, b.row) and np.array_equal(a.row, c.row)):
+        raise ValueError("sparse_blocks: the three blocks must share one sparsity pattern")
+    if not (np.array_equal(a.col, b.col) and np.array_equal(a.col, c.col)):
+        raise ValueError("sparse_blocks: the three blocks must share one sparsity pattern")
+    order = np.lexsort((a.col, a.row))
+    with jax.enable_x64(True):
+        return SparseBlocks(
+            jnp.asarray(a.row[order], jnp.int32),
+            jnp.asarray(a.col[order], jnp.int32),
+            jnp.asarray(a.data[order]),
+            jnp.asarray(b.data[order]),
+            jnp.asarray(c.data[order]),
+            a.shape[0],
+            a.shape[1],
+        )
 
 
 def traction_load(asm: Assembly, where, traction) -> np.ndarray:

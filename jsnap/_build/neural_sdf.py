@@ -27,9 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import json
 import time
-import warnings
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -41,33 +39,31 @@ import jax.numpy as jnp
 import numpy as np
 import trimesh
 
-from jsnap._build.cache import cache_dir, load_or_make, read_npz, save_npz
-from jsnap._core.sdf import MeshSDF, mesh_sdf_and_normal
-from jsnap._core.util import safe_norm
+from jsnap._build.cache import ArtefactError, KeyHash, artefact_path, cached, load_artefact, save_artefact
+from jsnap._build.sdf import mesh_sdf_from_trimesh
+from jsnap._core.sdf import (
+    MeshSDF,
+    NeuralSDF,
+    _neural_phi,
+    activation,
+    mesh_sdf_and_normal,
+    neural_sdf_and_normal,
+)
+from jsnap._core.util import x64
 
 __all__ = [
-    "FORMAT_VERSION",
-    "NeuralSDF",
     "NeuralSDFConfig",
-    "NeuralSDFFileError",
     "accuracy_report",
     "band_errors",
-    "cache_dir",
     "cache_key",
     "load",
     "load_mesh",
     "load_or_train",
-    "neural_sdf",
-    "neural_sdf_and_normal",
     "save",
     "shipped_path",
     "summarise",
     "train",
 ]
-
-FORMAT_NAME = "jsnap.neural_sdf"
-# Bump when the file layout or the meaning of a stored field changes; older files are rejected.
-FORMAT_VERSION = 1
 
 ACTIVATIONS = ("softplus", "silu", "gelu", "tanh")
 
@@ -75,10 +71,6 @@ ACTIVATIONS = ("softplus", "silu", "gelu", "tanh")
 # default plug's, so that a first run does not spend the training (~30 s on 2 cores) and every
 # machine uses the weights that the committed benchmark results were made with.
 SHIPPED = Path(__file__).parents[1] / "data" / "neural_sdf"
-
-
-class NeuralSDFFileError(ValueError):
-    """A weights file is unreadable, corrupt, of another format version, or for another mesh."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -176,17 +168,6 @@ class NeuralSDFConfig:
         )
 
 
-def _activation(name: str, beta: float):
-    # A softplus whose derivative reuses its exp (``jax.nn.softplus`` is ``logaddexp(x, 0)``,
-    # whose derivative takes a second exp) was tried twice, in sessions 15 and 18: the value +
-    # normal query alone ran 1.27-1.40x faster, but the neural-SDF rollouts slower (session 18,
-    # fresh processes interleaved: the reduced 1218-dof scene 1842-2107 against 2259-2537 µs per
-    # step, with light contact settings 1008-1154 against 1098-1223), so it was not kept.
-    if name == "softplus":
-        return lambda x: jax.nn.softplus(beta * x) / beta
-    return {"silu": jax.nn.silu, "gelu": jax.nn.gelu, "tanh": jnp.tanh}[name]
-
-
 class _MLP(nn.Module):
     """``depth`` hidden Dense layers of ``width`` neurons, then a scalar; input normalised."""
 
@@ -197,39 +178,10 @@ class _MLP(nn.Module):
 
     @nn.compact
     def __call__(self, x):
-        act = _activation(self.activation, self.beta)
+        act = activation(self.activation, self.beta)
         for i in range(self.depth):
             x = act(nn.Dense(self.width, name=f"hidden_{i}")(x))
         return nn.Dense(1, name="out")(x)[..., 0]
-
-
-class NeuralSDF(eqx.Module):
-    """A trained neural SDF as a pytree: weights and normalisation are array leaves.
-
-    Attributes:
-        params: Flax parameter tree of the MLP (``{"hidden_0": {"kernel", "bias"}, …, "out"}``).
-        center: (3,) centre of the training domain, mm.
-        half: (3,) half extents of the training domain (the input normalisation), mm.
-        out_scale: () mm per unit of network output.
-        width, depth, activation, softplus_beta: architecture (static).
-    """
-
-    params: dict
-    center: jax.Array
-    half: jax.Array
-    out_scale: jax.Array
-    width: int = eqx.field(static=True)
-    depth: int = eqx.field(static=True)
-    activation: str = eqx.field(static=True)
-    softplus_beta: float = eqx.field(static=True)
-
-    @property
-    def mlp(self) -> _MLP:
-        return _MLP(self.width, self.depth, self.activation, self.softplus_beta)
-
-    def astype(self, dtype) -> NeuralSDF:
-        """The same SDF with every array cast to ``dtype`` (e.g. ``jnp.float64``)."""
-        return jax.tree.map(lambda x: x.astype(dtype), self)
 
 
 def _template_params(config: NeuralSDFConfig, key=None):
@@ -238,78 +190,6 @@ def _template_params(config: NeuralSDFConfig, key=None):
     if key is None:
         return jax.eval_shape(lambda: mlp.init(jax.random.PRNGKey(0), x))["params"]
     return mlp.init(key, x)["params"]
-
-
-# --------------------------------------------------------------------------------------------
-# Queries (pure JAX)
-# --------------------------------------------------------------------------------------------
-
-
-def _phi(net: NeuralSDF, p):
-    """φ (N,) of points p (N, 3); outside the domain, distance to it plus φ at the clamp."""
-    lo = net.center - net.half
-    hi = net.center + net.half
-    q = jnp.clip(p, lo, hi)
-    y = net.mlp.apply({"params": net.params}, (q - net.center) / net.half)
-    return y * net.out_scale + safe_norm(p - q)
-
-
-def _phi_and_normal(net: NeuralSDF, p):
-    phi, vjp = jax.vjp(lambda x: _phi(net, x), p)
-    (g,) = vjp(jnp.ones_like(phi))
-    norm = safe_norm(g, keepdims=True)
-    # A zero gradient (measure zero for a trained net) gets the first axis, as the analytic
-    # SDF's tie-breaking does: a unit normal everywhere keeps contact frames finite.
-    fallback = jnp.zeros_like(g).at[:, 0].set(1.0)
-    n = jnp.where(norm > 0, g / jnp.where(norm > 0, norm, 1.0), fallback)
-    return phi, n
-
-
-# Jitted so that eager calls compile once per shape instead of dispatching op by op.
-_phi_jit = jax.jit(_phi)
-_phi_and_normal_jit = jax.jit(_phi_and_normal)
-
-
-def _points(net: NeuralSDF, p):
-    arrays = [x for x in (p, net.center) if isinstance(x, jax.Array | np.ndarray)]
-    dtype = jnp.result_type(*arrays)
-    if not jnp.issubdtype(dtype, jnp.floating):
-        dtype = net.center.dtype
-    p = jnp.asarray(p, dtype)
-    if p.shape[-1:] != (3,):
-        raise ValueError(f"points must have shape (..., 3), got {p.shape}")
-    return p.reshape(-1, 3), p.shape[:-1]
-
-
-def neural_sdf(net: NeuralSDF, p):
-    """Signed distance of points w.r.t. the plug, by the network.
-
-    Args:
-        net: :class:`NeuralSDF`.
-        p: points in the plug frame, (..., 3), mm (computed in the common dtype of ``p`` and the
-            weights).
-
-    Returns:
-        φ (...), mm, negative inside.
-    """
-    q, shape = _points(net, p)
-    return _phi_jit(net, q).reshape(shape)
-
-
-def neural_sdf_and_normal(net: NeuralSDF, p):
-    """Signed distance and outward unit normal ``∇φ / |∇φ|`` of points, by the network.
-
-    Pure JAX: jit, vmap and grad (w.r.t. ``p`` and ``net``) work; the normal is the
-    normalised gradient of the returned φ (``jax.vjp``).
-
-    Args: as :func:`neural_sdf`.
-
-    Returns:
-        ``(φ, n)``: φ (...) mm, negative inside; n (..., 3) unit vectors.
-    """
-    q, shape = _points(net, p)
-    phi, n = _phi_and_normal_jit(net, q)
-    return phi.reshape(shape), n.reshape(*shape, 3)
 
 
 # --------------------------------------------------------------------------------------------
@@ -324,7 +204,7 @@ def _check_mesh(mesh, name="mesh") -> MeshSDF:
     if len(mesh.faces) == 0:
         raise ValueError(f"{name}: the mesh has no triangles")
     try:
-        return MeshSDF.from_trimesh(mesh)
+        return mesh_sdf_from_trimesh(mesh)
     except ValueError as err:
         raise ValueError(f"{name}: {err}") from None
 
@@ -380,16 +260,13 @@ def mesh_hash(mesh: trimesh.Trimesh) -> str:
 
 
 def cache_key(mesh: trimesh.Trimesh, config: NeuralSDFConfig) -> str:
-    """SHA-256 of everything the weights depend on: format version, mesh, settings."""
-    blob = json.dumps(
-        dict(format=FORMAT_NAME, version=FORMAT_VERSION, mesh=mesh_hash(mesh), config=config.to_dict()),
-        sort_keys=True,
-    )
-    return hashlib.sha256(blob.encode()).hexdigest()
+    """SHA-256 of everything the weights depend on: the mesh (:func:`mesh_hash`), the settings
+    and the cache format's version."""
+    return KeyHash("neural_sdf").settings(dict(mesh=mesh_hash(mesh), config=config.to_dict())).hexdigest()
 
 
 def cache_path(key: str) -> Path:
-    return cache_dir() / "neural_sdf" / f"{key[:32]}.npz"
+    return artefact_path("neural_sdf", key)
 
 
 def shipped_path(key: str) -> Path:
@@ -452,6 +329,7 @@ def _band_points(mesh, exact: MeshSDF, band: float, n: int, rng):
     return np.concatenate(xs)[:n], np.concatenate(fs)[:n], np.concatenate(ns)[:n]
 
 
+@x64
 def band_errors(net: NeuralSDF, mesh, band: float = 0.2, points: int = 20_000, seed: int = 1234) -> dict:
     """Pointwise errors of the net (queried in float32) against the exact mesh SDF.
 
@@ -484,6 +362,7 @@ def summarise(errors: dict, band: float) -> dict:
     )
 
 
+@x64
 def accuracy_report(net: NeuralSDF, mesh, band: float = 0.2, points: int = 20_000, seed: int = 1234) -> dict:
     """Errors of the net against the exact mesh SDF, uniformly over the shell ``|φ| ≤ band``.
 
@@ -517,7 +396,7 @@ def _train_chunk(net, params, opt_state, key, data, *, config, length):
     opt = _optimizer(config)
 
     def loss_fn(params, x, y, w):
-        pred = _phi(eqx.tree_at(lambda m: m.params, net, params), x)
+        pred = _neural_phi(eqx.tree_at(lambda m: m.params, net, params), x)
         return jnp.mean(w * jnp.abs(pred - y))
 
     def body(carry, k):
@@ -531,6 +410,7 @@ def _train_chunk(net, params, opt_state, key, data, *, config, length):
     return params, opt_state, losses
 
 
+@x64
 def train(
     mesh,
     config: NeuralSDFConfig | None = None,
@@ -625,72 +505,40 @@ def _named_leaves(params) -> dict:
     return {"param/" + "/".join(str(k.key) for k in path): leaf for path, leaf in leaves}
 
 
-def save(net: NeuralSDF, path, *, key: str, mesh_hash: str, config: NeuralSDFConfig, extra=None) -> Path:
-    """Write the weights to ``path`` (``.npz``), atomically.
-
-    The file holds ``format``, ``format_version``, ``meta`` (JSON: architecture, settings, mesh
-    hash, cache key, ``extra``), ``checksum`` (SHA-256 of ``meta`` and every array), the
-    normalisation (``center``, ``half``, ``out_scale``) and the weights (``param/<layer>/<name>``).
-    """
-    arrays = {
+def _arrays(net: NeuralSDF) -> dict:
+    return {
         "center": np.asarray(net.center),
         "half": np.asarray(net.half),
         "out_scale": np.asarray(net.out_scale),
         **{k: np.asarray(v) for k, v in _named_leaves(net.params).items()},
     }
+
+
+def save(net: NeuralSDF, path, *, key: str, mesh_hash: str, config: NeuralSDFConfig, extra=None) -> Path:
+    """Write the weights to ``path`` (``.npz``, jsnap's artefact format, atomically): the
+    normalisation (``center``, ``half``, ``out_scale``), the weights (``param/<layer>/<name>``)
+    and as metadata the architecture, settings, mesh hash, cache key and ``extra``."""
     meta = dict(
-        architecture=config.architecture,
-        config=config.to_dict(),
-        mesh_hash=mesh_hash,
-        key=key,
-        extra=extra or {},
+        architecture=config.architecture, config=config.to_dict(), mesh_hash=mesh_hash, extra=extra or {}
     )
-    return save_npz(path, FORMAT_NAME, FORMAT_VERSION, meta, arrays)
+    return save_artefact(path, "neural_sdf", key, meta, _arrays(net))
 
 
-def load(path, *, key: str | None = None) -> tuple[NeuralSDF, dict]:
-    """Read weights written by :func:`save`, verifying format, checksum and (if given) key.
-
-    Args:
-        path: ``.npz`` file.
-        key: the :func:`cache_key` the weights must have been trained for (mesh and settings);
-            None skips this check.
-
-    Returns:
-        ``(net, meta)``.
-
-    Raises:
-        FileNotFoundError: no such file.
-        NeuralSDFFileError: unreadable or truncated, not a jsnap neural SDF, another format
-            version, checksum mismatch (corrupt), arrays that do not fit the architecture, or
-            trained for another mesh or settings than ``key``.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such neural SDF weights file")
-
-    def bad(why):
-        return NeuralSDFFileError(f"{path}: {why}; not using it (retrain with `jsnap train-sdf`)")
-
-    data, meta = read_npz(path, FORMAT_NAME, FORMAT_VERSION, "jsnap neural SDF weights file", bad)
+def _net(data: dict, meta: dict) -> NeuralSDF:
+    """The :class:`NeuralSDF` of a weights file's arrays (ArtefactError when they do not fit)."""
     try:
         config = NeuralSDFConfig.from_dict(meta["config"])
     except (KeyError, ValueError, TypeError) as err:
-        raise bad(f"corrupt metadata ({type(err).__name__}: {err})") from None
-    if key is not None and meta.get("key") != key:
-        raise bad(
-            f"trained for another mesh or other settings (key {str(meta.get('key'))[:12]}…, "
-            f"expected {key[:12]}…)"
-        )
+        raise ArtefactError(f"corrupt metadata ({type(err).__name__}: {err})") from None
     template = _template_params(config)
     expected = _named_leaves(template)
     got = {k: v for k, v in data.items() if k.startswith("param/")}
     if set(got) != set(expected) or any(got[k].shape != expected[k].shape for k in expected):
-        raise bad(f"weights do not match the architecture {config.architecture}")
+        raise ArtefactError(f"weights do not match the architecture {config.architecture}")
     params = jax.tree_util.tree_unflatten(
         jax.tree_util.tree_structure(template), [jnp.asarray(got[k]) for k in expected]
     )
-    net = NeuralSDF(
+    return NeuralSDF(
         params=params,
         center=jnp.asarray(data["center"]),
         half=jnp.asarray(data["half"]),
@@ -700,9 +548,28 @@ def load(path, *, key: str | None = None) -> tuple[NeuralSDF, dict]:
         activation=config.activation,
         softplus_beta=float(config.softplus_beta),
     )
-    return net, meta
 
 
+@x64
+def load(path, *, key: str | None = None) -> tuple[NeuralSDF, dict]:
+    """Read weights written by :func:`save`, verifying format, checksum and (if given) key.
+
+    Returns:
+        ``(net, meta)``.
+
+    Raises:
+        FileNotFoundError: no such file.
+        jsnap._build.cache.ArtefactError: unreadable or corrupt, another format version, arrays
+            that do not fit the architecture, or trained for another mesh or settings than ``key``.
+    """
+    data, meta = load_artefact(path, "neural_sdf", key)
+    try:
+        return _net(data, meta), meta
+    except ArtefactError as err:
+        raise ArtefactError(f"{path}: {err}") from None
+
+
+@x64
 def load_or_train(
     mesh,
     config: NeuralSDFConfig | None = None,
@@ -713,15 +580,11 @@ def load_or_train(
 ):
     """The cached neural SDF of ``mesh`` for ``config``, training (and caching) it if needed.
 
-    The cache file is ``cache_dir()/neural_sdf/<k>.npz``, ``k`` the first 32 hex digits of
-    ``cache_key(mesh, config)`` (the full key is stored in the file and checked). A cached file
-    that is corrupt or was written for something else is never used: it is reported with a
-    warning and replaced by a freshly trained one. Where the cache has no file, the weights
-    shipped with the package for the key (:func:`shipped_path`: the default plug's, default
-    settings) are used, read-only, before anything is trained.
-
-    Processes that ask for the same weights at once train them once: the others wait and load
-    them (:func:`jsnap._build.cache.load_or_make`).
+    A cached file that is corrupt or was written for something else is never used: it is
+    reported with a warning and replaced by a freshly trained one. Where the cache has no file,
+    the weights shipped with the package for the key (:func:`shipped_path`: the default plug's,
+    default settings) are used, read-only, before anything is trained. Processes that ask for the
+    same weights at once train them once.
 
     Args:
         mesh: ``trimesh.Trimesh``, watertight and consistently wound, in mm.
@@ -741,37 +604,36 @@ def load_or_train(
     config = config or NeuralSDFConfig()
     _check_mesh(mesh)
     key = cache_key(mesh, config)
-    path = cache_path(key)
+    trained_net = {}
 
-    def cached(file=path):
-        shipped = file != path
-        try:
-            net, meta = load(file, key=key)
-        except NeuralSDFFileError as err:
-            # Points at load_or_train's caller: directly from here, through load_or_make otherwise.
-            warnings.warn(f"{err}; {'training' if shipped else 'retraining'}", stacklevel=3 if shipped else 4)
-            return None
-        extra = meta.get("extra", {})
-        return net, dict(
-            path=file,
-            cached=True,
-            shipped=shipped,
-            key=key,
-            mesh_hash=meta["mesh_hash"],
-            config=meta["config"],
-            report=extra.get("report"),
-            seconds=extra.get("seconds"),
-        )
-
-    def trained():
+    def make():
         net, info = train(mesh, config, progress=progress, report_points=report_points)
+        trained_net["net"] = net
         loss = float(np.mean(info["loss"][-100:]))
         extra = dict(report=info["report"], seconds=info["seconds"], final_loss=loss)
-        save(net, path, key=key, mesh_hash=info["mesh_hash"], config=config, extra=extra)
-        info = {k: v for k, v in info.items() if k != "loss"}
-        return net, dict(info, path=path, cached=False, shipped=False)
+        meta = dict(
+            architecture=config.architecture, config=config.to_dict(), mesh_hash=info["mesh_hash"], extra=extra
+        )
+        return _arrays(net), meta
 
-    package = shipped_path(key)
-    if not retrain and not path.is_file() and package.is_file() and (found := cached(package)) is not None:
-        return found
-    return load_or_make(path, cached, trained, what="the neural SDF", fresh=retrain)
+    arrays, meta = cached(
+        "neural_sdf",
+        key,
+        make,
+        what="the neural SDF",
+        check=lambda a, m: _net(a, m),
+        fresh=retrain,
+        shipped=shipped_path(key),
+    )
+    net = trained_net.get("net") or _net(arrays, meta)
+    extra = meta.get("extra", {})
+    return net, dict(
+        path=Path(meta["path"]),
+        cached=meta["cached"],
+        shipped=meta["shipped"],
+        key=key,
+        mesh_hash=meta["mesh_hash"],
+        config=meta["config"],
+        report=extra.get("report"),
+        seconds=extra.get("seconds"),
+    )

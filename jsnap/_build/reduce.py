@@ -55,15 +55,10 @@ Units: mm, N, MPa, s, tonne.
 
 from __future__ import annotations
 
-import hashlib
 import itertools
-import json
 import time
-import warnings
 from dataclasses import dataclass
-from pathlib import Path
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -72,40 +67,18 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import skfem
 
-from jsnap._build.cache import cache_dir, load_or_make, read_npz, save_npz
-from jsnap._build.fem import _ELEMENTS, Assembly, _k_lam, _k_mu, _m1, lame
-from jsnap._core.pmi import Material, spd_inverse
-from jsnap._core.parts import ContactRows
+from jsnap._build.cache import ArtefactError, KeyHash, cached
+from jsnap._build.fem import _ELEMENTS, Assembly, _k_lam, _k_mu, _m1, wrench_rows
+from jsnap._core.params import lame
+from jsnap._core.parts import ReducedPart, SegmentedPart
 
-__all__ = [
-    "FORMAT_VERSION",
-    "GRAMIAN_DAMPING",
-    "ReducedModelFileError",
-    "ReducedOperator",
-    "ReducedSocket",
-    "Segmentation",
-    "build_socket",
-    "load",
-    "load_or_build",
-    "save",
-    "segment",
-]
-
-FORMAT_NAME = "jsnap.reduced_socket"
-# Bump when the file layout, the meaning of a stored field or the reduction algorithm changes;
-# older files are rejected (and rebuilt by load_or_build).
-FORMAT_VERSION = 1
+__all__ = ["GRAMIAN_DAMPING", "Segmentation", "build_part", "cache_key", "load_or_build", "segment"]
 
 # Modal damping ratio under which the position Gramians are computed. The socket may have no
 # damping at all (the default scene), and the Gramians of an undamped system do not exist. For
 # well-separated modes the position Hankel singular values are |b_k|^2 / (4 zeta omega_k^2): all
 # scale by 1/zeta alike, so the truncation (relative to the largest) barely depends on it.
 GRAMIAN_DAMPING = 0.05
-
-
-class ReducedModelFileError(ValueError):
-    """A reduced-model file is unreadable, corrupt, of another format version, or for another
-    scene (mesh, contact points, settings)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -141,7 +114,7 @@ class Segmentation:
 
 def _face_owners(asm: Assembly, faces: np.ndarray) -> np.ndarray:
     """(f,) element owning each boundary face (f, 3) (vertex ids)."""
-    from jsnap._geometry.cantilever import _TET_FACES
+    from jsnap._geometry.mesh import TET_FACES as _TET_FACES
 
     cells = asm.mesh.cells
     all_faces = np.sort(cells[:, _TET_FACES].reshape(-1, 3), axis=1)
@@ -608,163 +581,7 @@ def segment_basis(
 
 
 # --------------------------------------------------------------------------------------------
-# The socket (pure JAX)
-# --------------------------------------------------------------------------------------------
-
-
-class ReducedOperator(eqx.Module):
-    """What one step of a segmented or reduced socket needs for one material and time step.
-
-    The interface springs stay factored (``k_c Dg'Dg``), so that the residual of the PMI
-    equations can be formed without the rounding of a dense stiff matrix (see
-    :meth:`ReducedSocket.free_velocity`).
-
-    Attributes:
-        S_inv: (r, r) inverse of ``S_r = 2 M_r/T + D_r + (T/2) K_r`` (interface springs
-            included: the coupling is eliminated here, once per parameter set).
-        S_el: (r, r) ``S_r`` without the interface springs.
-        M2T: (r, r) ``(2/T) M_r``.   K_el: (r, r) ``K_r`` without the interface springs, N/mm.
-        m: (r, r) ``M_r``, t.
-        kc: interface spring stiffness, N/mm.   sc: ``b_c + (T/2) k_c``, N s/mm.
-        NS: (c, 3, r) ``J_c S_inv`` for the contact nodes (``J_c`` = ``node_rows``): a step's
-            ``J S_inv`` is interpolated from it without an (r, r) product.
-        dt: scalar time step T, s.
-    """
-
-    S_inv: jax.Array
-    S_el: jax.Array
-    M2T: jax.Array
-    K_el: jax.Array
-    m: jax.Array
-    kc: jax.Array
-    sc: jax.Array
-    NS: jax.Array
-    dt: jax.Array
-
-    def astype(self, dtype) -> ReducedOperator:
-        return jax.tree_util.tree_map(lambda a: a.astype(dtype), self)
-
-
-class ReducedSocket(ContactRows):
-    """Segmented (``method = "segmented"``) or segmented and reduced (``"reduced"``) socket.
-
-    The state ``x`` (r,) stacks every segment's coordinates: its nodal dofs (segmented) or its
-    reduced coordinates ``z_i`` with ``x_i = V_i z_i`` (reduced). Implements the interface of
-    :class:`jsnap._core.parts.FullSocket`. All blocks are parameter-free, so every method is exact
-    and differentiable in the material (E, nu, rho, alpha, beta).
-
-    Attributes:
-        kl, km, m1: (r, r) ``V'K_lam V``, ``V'K_mu V``, ``V'M1 V`` (block diagonal by segment).
-        coupling_rows: (3p, r) ``Dg V``: the gap of each joined pair of copies, per component.
-        coupling: (2,) interface spring stiffness k_c (N/mm) and damping b_c (N s/mm).
-        out_kl, out_km, out_m1: (6, r) base force (N) and moment about the base centroid
-            (N mm) per unit of ``K_lam``, ``K_mu``, ``M1`` action (reduced linear outputs).
-        node_rows: (c, 3, r) displacement of the contact nodes (the interpolating nodes of the
-            candidate points and of their stencils) per unit coordinate.
-        sample_nodes, sample_weights: (P, k) indices into ``node_rows`` and shape functions.
-        stencil_nodes, stencil_weights: (P, 8, k) the same for the normal stencils.
-        recon: (n_free, r) free-dof displacement of the full mesh per unit coordinate (reduced),
-            or None (segmented: ``recon_index`` picks one copy of each free dof).
-        recon_index: (n_free,) coordinate of each free dof (segmented only; else unused).
-        orders: static, coordinates per segment (segment 0 is the contact segment).
-        method: static, ``"segmented"`` or ``"reduced"``.
-    """
-
-    kl: jax.Array
-    km: jax.Array
-    m1: jax.Array
-    coupling_rows: jax.Array
-    coupling: jax.Array
-    out_kl: jax.Array
-    out_km: jax.Array
-    out_m1: jax.Array
-    recon: jax.Array | None
-    recon_index: jax.Array
-    orders: tuple[int, ...] = eqx.field(static=True)
-    method: str = eqx.field(static=True)
-
-    @property
-    def n_dof(self) -> int:
-        return self.kl.shape[0]
-
-    def _stiffness(self, material: Material):
-        lam, mu = lame(material.E, material.nu)
-        return lam * self.kl + mu * self.km
-
-    def prepare(self, material: Material, dt) -> ReducedOperator:
-        """Reduced operator for ``material`` and ``dt`` (s): one dense inverse of (r, r),
-        differentiable with respect to every field of ``material``. The interface coupling is
-        folded into ``S_r``, so its elimination costs nothing per step."""
-        dt = jnp.asarray(dt, jnp.float64)
-        kc, bc = self.coupling[0], self.coupling[1]
-        Dg = self.coupling_rows
-        K_el = self._stiffness(material)
-        M = material.rho * self.m1
-        S_el = 2.0 * M / dt + material.alpha * M + material.beta * K_el + 0.5 * dt * K_el
-        sc = bc + 0.5 * dt * kc
-        S = S_el + sc * (Dg.T @ Dg)
-        S_inv = spd_inverse(S)
-        NS = jnp.einsum("cdr,rs->cds", self.node_rows, S_inv)
-        return ReducedOperator(S_inv, S_el, (2.0 / dt) * M, K_el, M, kc, sc, NS, dt)
-
-    def free_velocity(self, op: ReducedOperator, x, v):
-        """Midpoint velocity with no contact force, ``S_r^-1 ((2/T) M_r v - K_r x)``, with one
-        step of iterative refinement whose residual is formed from the factored operators: a
-        computed ``S_inv`` is the exact inverse of a nearby ``S + dS``, and that fixed ``dS``
-        (of the size of the stiff interface springs times eps) would otherwise act as a
-        spurious damping or anti-damping that drifts the energy linearly in the steps."""
-        Dg = self.coupling_rows
-        rhs = op.M2T @ v - op.K_el @ x - op.kc * (Dg.T @ (Dg @ x))
-        vbar = op.S_inv @ rhs
-        res = rhs - op.S_el @ vbar - op.sc * (Dg.T @ (Dg @ vbar))
-        return vbar + op.S_inv @ res
-
-    def contact_factors(self, op: ReducedOperator, idx):
-        """``A = J S^-1`` and ``J`` (C, 3, r) at the selected points, interpolated from the
-        contact nodes' precomputed ``J_c S^-1`` and ``J_c``: the Delassus block is ``A J'``.
-        O(C k r) per step (k interpolating nodes per point)."""
-        w, nodes = self.sample_weights[idx], self.sample_nodes[idx]
-        A = jnp.einsum("ck,ckdr->cdr", w, op.NS[nodes])
-        J = jnp.einsum("ck,ckdr->cdr", w, self.node_rows[nodes])
-        return A, J
-
-    def contact_operator(self, op: ReducedOperator, idx):
-        """``A = J S^-1`` (C, 3, r) and ``W = A J'`` (C, 3, C, 3): O(C k r + (3C)^2 r) per step,
-        no (r, r) product."""
-        A, J = self.contact_factors(op, idx)
-        return A, jnp.einsum("cdr,efr->cdef", A, J)
-
-    def contact_velocity(self, op: ReducedOperator, A, force):
-        """``A' force``: the midpoint velocity that point forces (C, 3) add."""
-        return jnp.einsum("cdr,cd->r", A, force)
-
-    def energy(self, op: ReducedOperator, x, v):
-        """Discrete energy ``1/2 v'M_r v + 1/2 x'K_r x`` (interface springs included), N mm."""
-        gap = self.coupling_rows @ x
-        return 0.5 * v @ (op.m @ v) + 0.5 * x @ (op.K_el @ x) + 0.5 * op.kc * gap @ gap
-
-    def base_wrench(self, op: ReducedOperator, material: Material, x, v, v_new, vbar):
-        """Reaction of the fixed base on the socket over the step (force N, moment N mm about
-        the base centroid) at the interval's midpoint, as :class:`FullSocket` does, from the
-        reduced output rows."""
-        dtype = x.dtype
-        lam, mu = lame(material.E, material.nu)
-        ok = (lam * self.out_kl + mu * self.out_km).astype(dtype)
-        om = (material.rho * self.out_m1).astype(dtype)
-        T = op.dt
-        xbar = x + 0.5 * T * vbar
-        w = om @ ((v_new - v) / T + material.alpha * vbar) + ok @ (xbar + material.beta * vbar)
-        return w[:3], w[3:]
-
-    def free_displacement(self, x):
-        """(n_free,) displacement at the free dofs of the full mesh, mm (reconstructed)."""
-        if self.recon is None:
-            return x[self.recon_index]
-        return self.recon @ x
-
-
-# --------------------------------------------------------------------------------------------
-# Building the socket (host)
+# Building the part (host)
 # --------------------------------------------------------------------------------------------
 
 # Arrays of a built segmented/reduced socket, in the order of the ReducedSocket fields.
@@ -772,22 +589,6 @@ _ARRAYS = (
     "kl", "km", "m1", "coupling_rows", "out_kl", "out_km", "out_m1", "node_rows",
     "sample_nodes", "sample_weights", "stencil_nodes", "stencil_weights", "recon", "recon_index",
 )  # fmt: skip
-
-
-def _wrench_rows(asm: Assembly) -> np.ndarray:
-    """(6, n_fixed) sum of the base reactions (n_fixed,) into force and moment about the base
-    centroid (the same centroid as ``FullSocket.base_offsets``)."""
-    pos = asm.nodes[asm.fixed[0::3] // 3]
-    o = pos - pos.mean(axis=0)
-    n = pos.shape[0]
-    S = np.zeros((6, 3 * n))
-    j = 3 * np.arange(n)
-    for a in range(3):
-        S[a, j + a] = 1.0
-    S[3, j + 2], S[3, j + 1] = o[:, 1], -o[:, 2]
-    S[4, j + 0], S[4, j + 2] = o[:, 2], -o[:, 0]
-    S[5, j + 1], S[5, j + 0] = o[:, 0], -o[:, 1]
-    return S
 
 
 def _contact_maps(asm: Assembly, seg: Segmentation, nodes: np.ndarray, weights: np.ndarray):
@@ -835,7 +636,7 @@ def _socket_arrays(asm, seg, blocks, reactions, bases, sample, stencil) -> tuple
                 if sel.size:
                     cr[3 * sel + a] = rows(sa, 3 * P[sel, 1] + a) - rows(sb, 3 * P[sel, 3] + a)
     out["coupling_rows"] = cr
-    S = _wrench_rows(asm)
+    S = wrench_rows(asm)
     for name, b in zip(("out_kl", "out_km", "out_m1"), range(3), strict=True):
         o = np.zeros((6, r))
         for i, V in enumerate(Vs):
@@ -876,16 +677,15 @@ def _socket_arrays(asm, seg, blocks, reactions, bases, sample, stencil) -> tuple
     return out, orders
 
 
-def _to_socket(arrays: dict, orders, method: str, kc: float, bc: float) -> ReducedSocket:
-    def j(a):
-        return None if a is None else jnp.asarray(a)
-
-    return ReducedSocket(
-        **{k: j(arrays[k]) for k in _ARRAYS},
-        coupling=jnp.asarray([kc, bc], jnp.float64),
-        orders=tuple(orders),
-        method=method,
-    )
+def _to_part(arrays: dict, orders, method: str, kc: float, bc: float) -> SegmentedPart | ReducedPart:
+    fields = [k for k in _ARRAYS if k != ("recon_index" if method == "reduced" else "recon")]
+    cls = ReducedPart if method == "reduced" else SegmentedPart
+    with jax.enable_x64(True):
+        return cls(
+            **{k: jnp.asarray(arrays[k]) for k in fields},
+            coupling=jnp.asarray([kc, bc], jnp.float64),
+            orders=tuple(orders),
+        )
 
 
 def reduce_bases(
@@ -934,75 +734,29 @@ def reduce_bases(
 
 
 # --------------------------------------------------------------------------------------------
-# Files and cache
+# Cache
 # --------------------------------------------------------------------------------------------
 
 
-def _hash_arrays(h, *arrays):
-    for a in arrays:
-        a = np.ascontiguousarray(a)
-        h.update(f"{a.dtype.str}|{a.shape}".encode())
-        h.update(a.tobytes())
-
-
 def cache_key(asm: Assembly, seed_faces, sample, stencil, normals, settings: dict) -> str:
-    """SHA-256 of everything a reduced model depends on: format version, mesh and element,
-    clamped dofs, seed faces, contact points' and stencils' nodes and weights and the points'
-    normals, and the settings
-    (material it was balanced at, tolerance, subspace modes, margin, segments)."""
-    h = hashlib.sha256()
-    h.update(json.dumps(dict(format=FORMAT_NAME, version=FORMAT_VERSION, element=asm.element)).encode())
-    _hash_arrays(h, asm.mesh.points, asm.mesh.cells, asm.fixed, np.sort(np.sort(seed_faces, axis=1), axis=0))
-    _hash_arrays(h, *sample, *stencil, np.asarray(normals, dtype=np.float64))
-    h.update(json.dumps(dict(settings, gramian_damping=GRAMIAN_DAMPING), sort_keys=True).encode())
-    return h.hexdigest()
+    """SHA-256 of everything a reduced model depends on: mesh and element, fixed dofs, seed
+    faces, the contact points' and stencils' nodes and weights, the points' normals and the
+    settings (material it was balanced at, tolerance, subspace modes, margin, segments)."""
+    h = KeyHash("reduced").settings(dict(settings, element=asm.element, gramian_damping=GRAMIAN_DAMPING))
+    h.arrays(asm.mesh.points, asm.mesh.cells, asm.fixed, np.sort(np.sort(seed_faces, axis=1), axis=0))
+    return h.arrays(*sample, *stencil, np.asarray(normals, dtype=np.float64)).hexdigest()
 
 
-def cache_path(key: str) -> Path:
-    """``cache_dir()/reduced/<key>.npz`` (``$JSNAP_CACHE`` or ``~/.cache/jsnap``)."""
-    return cache_dir() / "reduced" / f"{key[:32]}.npz"
-
-
-def save(arrays: dict, meta: dict, path) -> Path:
-    """Write a reduced model (the ReducedSocket arrays and ``meta``, which must hold ``key`` and
-    ``orders``) to ``path`` (``.npz``), atomically, with format name, version and a checksum."""
-    arrays = {k: v for k, v in arrays.items() if v is not None}
-    return save_npz(path, FORMAT_NAME, FORMAT_VERSION, meta, arrays)
-
-
-def load(path, *, key: str | None = None) -> tuple[dict, dict]:
-    """Read a reduced model written by :func:`save`, verifying format, version, checksum,
-    array shapes and (if given) the cache key.
-
-    Returns:
-        ``(arrays, meta)``.
-
-    Raises:
-        FileNotFoundError: no such file.
-        ReducedModelFileError: unreadable or truncated, not a jsnap reduced model, another format
-            version, checksum mismatch (corrupt), inconsistent arrays, or built for another scene
-            than ``key``.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such reduced model file")
-
-    def bad(why):
-        return ReducedModelFileError(f"{path}: {why}; not using it (it is rebuilt by jsnap.build)")
-
-    data, meta = read_npz(path, FORMAT_NAME, FORMAT_VERSION, "jsnap reduced model", bad)
+def _check_arrays(arrays: dict, meta: dict) -> None:
+    """A cached file's arrays must be those of a reduced model of its stored orders."""
     try:
-        orders = tuple(int(o) for o in meta["orders"])
+        r = sum(int(o) for o in meta["orders"])
     except (KeyError, ValueError, TypeError) as err:
-        raise bad(f"corrupt metadata ({type(err).__name__}: {err})") from None
-    if key is not None and meta.get("key") != key:
-        raise bad(f"built for another scene (key {str(meta.get('key'))[:12]}…, expected {key[:12]}…)")
-    missing = [k for k in _ARRAYS if k not in data and k != "recon"]
-    r = sum(orders)
+        raise ArtefactError(f"corrupt metadata ({type(err).__name__}: {err})") from None
+    missing = [k for k in _ARRAYS if k not in arrays and k != "recon_index"]
     square = ("kl", "km", "m1", "coupling_rows", "node_rows", "recon")
-    if missing or any(data[k].shape[-1] != r for k in square if k in data):
-        raise bad(f"arrays missing or not of order {r} ({', '.join(missing) or 'shapes'})")
-    return data, meta
+    if missing or any(arrays[k].shape[-1] != r for k in square if k in arrays):
+        raise ArtefactError(f"arrays missing or not of order {r} ({', '.join(missing) or 'shapes'})")
 
 
 def _settings(scene) -> dict:
@@ -1023,11 +777,8 @@ def load_or_build(
 ):
     """The reduced model's arrays for a scene, from the cache or built (and cached).
 
-    A cached file that is corrupt or was built for something else is never used: it is
-    reported with a warning and rebuilt.
-
-    Processes that build the same model at once build it once: the others wait and load it
-    (:func:`jsnap._build.cache.load_or_make`).
+    A cached file that is corrupt or was built for something else is never used: it is reported
+    with a warning and rebuilt. Processes that build the same model at once build it once.
 
     Returns:
         ``(arrays, meta)``; meta holds ``orders``, ``key``, ``path``, ``cached``, ``seconds``
@@ -1035,28 +786,18 @@ def load_or_build(
     """
     settings = _settings(scene)
     key = cache_key(asm, seed_faces, sample, stencil, normals, settings)
-    path = cache_path(key)
-
-    def cached():
-        try:
-            arrays, meta = load(path, key=key)
-        except ReducedModelFileError as err:
-            warnings.warn(f"{err}; rebuilding", stacklevel=4)
-            return None
-        arrays.setdefault("recon", None)
-        return arrays, dict(meta, path=str(path), cached=True)
-
-    return load_or_make(
-        path,
-        cached,
-        lambda: _build(asm, seed_faces, sample, stencil, normals, settings, key, path, progress),
+    return cached(
+        "reduced",
+        key,
+        lambda: _build(asm, seed_faces, sample, stencil, normals, settings, progress),
         what="the reduced model",
+        check=_check_arrays,
         fresh=rebuild,
     )
 
 
-def _build(asm: Assembly, seed_faces, sample, stencil, normals, settings, key, path, progress):
-    """Segment, reduce and cache (:func:`load_or_build`'s build)."""
+def _build(asm: Assembly, seed_faces, sample, stencil, normals, settings, progress):
+    """Segment and reduce (:func:`load_or_build`'s build): ``(arrays, meta)``."""
     say = print if progress else (lambda *a, **k: None)
     t0 = time.perf_counter()
     seg = segment(asm, seed_faces, settings["segment_margin"], settings["segments"])
@@ -1068,7 +809,6 @@ def _build(asm: Assembly, seed_faces, sample, stencil, normals, settings, key, p
     arrays, orders = _socket_arrays(asm, seg, blocks, reactions, [b.V for b in bases], sample, stencil)
     seconds = time.perf_counter() - t0
     meta = dict(
-        key=key,
         orders=list(orders),
         seconds=seconds,
         settings=settings,
@@ -1090,12 +830,11 @@ def _build(asm: Assembly, seed_faces, sample, stencil, normals, settings, key, p
         **info,
     )
     say(f"jsnap: reduced {asm.free.size} dof to {' + '.join(map(str, orders))} in {seconds:.1f} s")
-    save(arrays, meta, path)
-    return arrays, dict(meta, path=str(path), cached=False)
+    return {k: v for k, v in arrays.items() if v is not None}, meta
 
 
-def build_socket(asm: Assembly, seed_faces, sample, stencil, normals, scene, *, progress: bool = False):
-    """The socket of a segmented or reduced scene (``solver.method``), and a dict describing it.
+def build_part(asm: Assembly, seed_faces, sample, stencil, normals, scene, *, progress: bool = False):
+    """The part of a segmented or reduced scene (``solver.method``), and a dict describing it.
 
     Args:
         asm: the full assembly.
@@ -1123,6 +862,6 @@ def build_socket(asm: Assembly, seed_faces, sample, stencil, normals, scene, *, 
         orders = info["orders"]
     else:
         raise ValueError(
-            f"solver.method = {s['method']!r}: build_socket makes 'segmented' or 'reduced' sockets"
+            f"solver.method = {s['method']!r}: build_part makes 'segmented' or 'reduced' parts"
         )
-    return _to_socket(arrays, orders, s["method"], kc, bc), info
+    return _to_part(arrays, orders, s["method"], kc, bc), info

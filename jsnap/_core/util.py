@@ -1,6 +1,12 @@
-"""Small numerical helpers shared by the kernels."""
+"""Small numerical helpers shared by the kernels, and jsnap's scoped 64-bit mode."""
 
+import functools
+
+import jax
 import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["cast_floats", "safe_norm", "x64"]
 
 
 def safe_norm(x, axis=-1, keepdims=False, eps=1e-30):
@@ -15,3 +21,33 @@ def safe_norm(x, axis=-1, keepdims=False, eps=1e-30):
     sq = jnp.sum(x * x, axis=axis, keepdims=keepdims)
     ok = sq > eps
     return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
+
+
+def x64(fn):
+    """Run ``fn`` with JAX's 64-bit types enabled for its own duration only.
+
+    jsnap precomputes in float64 (assembly, the PMI operator's inverse, reductions) and rolls out
+    in the precision asked for. ``jax_enable_x64`` is a setting of the whole process; rather than
+    switching it on at import (which would change every other JAX program in the process, an RL
+    policy's for one), each public entry point enters ``jax.enable_x64(True)`` around its own
+    work. Arrays jsnap returns keep their dtype (float32 by default). Inside a user's ``jit``,
+    ``grad`` or ``vmap`` the scope applies while jsnap's part of the program is traced.
+    """
+
+    @functools.wraps(fn)
+    def wrapped(*args, **kwargs):
+        with jax.enable_x64(True):
+            return fn(*args, **kwargs)
+
+    return wrapped
+
+
+def cast_floats(tree, dtype):
+    """``tree`` with every floating array leaf cast to ``dtype`` (other leaves unchanged)."""
+
+    def f(a):
+        if isinstance(a, jax.Array | np.ndarray) and jnp.issubdtype(a.dtype, jnp.floating):
+            return a.astype(dtype)
+        return a
+
+    return jax.tree_util.tree_map(f, tree)

@@ -1,8 +1,14 @@
 """Scene files: TOML in, a validated, immutable :class:`Scene` out.
 
-Every key is declared once in ``_SCHEMA`` with its type, default (or ``REQUIRED``) and range.
-Unknown keys, missing required keys, wrong types, non-finite numbers and out-of-range values
-raise :class:`SceneError`, whose message names the key (``section.key``) and the value.
+Every key is declared once in :data:`SCHEMA` with its type, unit, default (or required), range
+and meaning; the scene reference in the docs is generated from it. Unknown keys, missing
+required keys, wrong types, non-finite numbers, out-of-range values and combinations that make
+the result meaningless raise :class:`SceneError`, whose message names the key (``section.key``)
+and the value; doubtful values warn with :class:`SceneWarning`.
+
+A few keys and choices are internal: they exist for the tests and benchmarks that show why they
+are not the default (projected Gauss–Seidel, the modal form, the segmentation's settings...).
+Scene files and :meth:`Scene.replace` reject them; :func:`with_internal` sets them.
 
 Units: mm, N, MPa, s, tonne (density in t/mm^3), angles in degrees.
 """
@@ -11,135 +17,238 @@ from __future__ import annotations
 
 import math
 import tomllib
-from collections.abc import Callable, Mapping
+import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-__all__ = ["Scene", "SceneError", "default_scene_path", "load_scene"]
+from jsnap._geometry.cantilever import Cantilever
+from jsnap._geometry.motion import latching_stroke
+
+__all__ = [
+    "MIN_STEPS",
+    "SCHEMA",
+    "Key",
+    "Scene",
+    "SceneError",
+    "SceneWarning",
+    "connector_geometry",
+    "default_scene_path",
+    "load_scene",
+    "motion_stroke",
+    "with_internal",
+]
 
 
 class SceneError(ValueError):
     """A scene file or scene value is invalid; the message names the key and the value."""
 
 
-REQUIRED = object()
+class SceneWarning(UserWarning):
+    """A scene value that is allowed but likely gives a poor result; the message names the key."""
 
-# Values the kernels implement in this version. A scene asking for another value of these keys
-# is rejected at load time, naming the key, rather than accepted and silently replaced.
-IMPLEMENTED = {
-    ("solver", "method"): ("full", "modal", "segmented", "reduced"),
-    ("solver", "sdf"): ("analytic", "mesh", "neural"),
-}
+
+REQUIRED = object()
 
 
 @dataclass(frozen=True)
-class _Key:
+class Key:
+    """One scene key.
+
+    Attributes:
+        kind: float, int, bool or str.
+        default: the value when the key is absent; ``REQUIRED`` for none; None for "derived"
+            (see ``doc``).
+        unit: e.g. ``"mm"``; ``""`` for dimensionless.
+        lo, hi: numeric range (None: unbounded), ``lo_open``/``hi_open`` for open ends.
+        choices: the allowed strings; ``internal_choices``: more, for tests and benchmarks only.
+        internal: the key is not part of scene files (tests and benchmarks set it).
+        doc: what it means.
+    """
+
     kind: type
     default: Any = REQUIRED
-    check: Callable[[Any], str | None] | None = None
-    choices: tuple | None = None
+    unit: str = ""
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+    choices: tuple[str, ...] | None = None
+    internal_choices: tuple[str, ...] = ()
+    internal: bool = False
     doc: str = ""
 
+    def range_text(self) -> str:
+        """The allowed values, as the scene reference shows them."""
+        if self.choices is not None:
+            return " | ".join(f'"{c}"' for c in self.choices)
+        if self.kind is bool:
+            return "true | false"
+        if self.lo is None and self.hi is None:
+            return "any"
+        if self.hi is None:
+            return f"{'>' if self.lo_open else '>='} {self.lo:g}"
+        if self.lo is None:
+            return f"{'<' if self.hi_open else '<='} {self.hi:g}"
+        return f"{'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}{')' if self.hi_open else ']'}"
 
-def _positive(v):
-    return None if v > 0 else "must be > 0"
+    def check(self, v) -> str | None:
+        """Why ``v`` is out of range, or None."""
+        if self.lo is not None and (v <= self.lo if self.lo_open else v < self.lo):
+            return f"must be in {self.range_text()}" if self.hi is not None else f"must be {self.range_text()}"
+        if self.hi is not None and (v >= self.hi if self.hi_open else v > self.hi):
+            return f"must be in {self.range_text()}" if self.lo is not None else f"must be {self.range_text()}"
+        return None
 
 
-def _nonneg(v):
-    return None if v >= 0 else "must be >= 0"
+def _pos(unit, default=REQUIRED, doc="", **kw):
+    return Key(float, default, unit, lo=0.0, lo_open=True, doc=doc, **kw)
 
 
-def _between(lo, hi, lo_open=True, hi_open=True):
-    def check(v):
-        ok_lo = v > lo if lo_open else v >= lo
-        ok_hi = v < hi if hi_open else v <= hi
-        if ok_lo and ok_hi:
-            return None
-        return f"must be in {'(' if lo_open else '['}{lo}, {hi}{')' if hi_open else ']'}"
-
-    return check
+def _nonneg(unit, default=REQUIRED, doc="", **kw):
+    return Key(float, default, unit, lo=0.0, doc=doc, **kw)
 
 
-def _optional_positive(v):
-    return None if v is None or v > 0 else "must be > 0"
-
-
-_SCHEMA: dict[str, dict[str, _Key]] = {
+SCHEMA: dict[str, dict[str, Key]] = {
     "connector": {
-        "type": _Key(str, choices=("cantilever",), doc="connector family"),
-        "length": _Key(float, check=_positive, doc="L, mm"),
-        "thickness": _Key(float, check=_positive, doc="h at the root, mm"),
-        "tip_thickness": _Key(float, None, _optional_positive, doc="h_tip at z = L, mm"),
-        "width": _Key(float, check=_positive, doc="b, mm"),
-        "undercut": _Key(float, check=_positive, doc="y_u, mm"),
-        "lead_angle": _Key(float, check=_between(0, 90), doc="alpha, degrees"),
-        "return_angle": _Key(float, check=_between(0, 90, hi_open=False), doc="alpha', deg"),
-        "flat": _Key(float, check=_nonneg, doc="flat land of the hook, mm"),
+        "type": Key(
+            str, choices=("cantilever",), doc="connector family (DESIGN: the canonical cantilever hook)"
+        ),
+        "length": _pos("mm", doc="L, arm length from the fixed root (z = 0) to the retention face"),
+        "thickness": _pos("mm", doc="h, arm thickness at the root (the bending direction x)"),
+        "tip_thickness": _pos("mm", None, "h_tip, arm thickness at z = L (tapered arm); default: thickness"),
+        "width": _pos("mm", doc="b, arm width (y)"),
+        "undercut": _pos("mm", doc="y_u, how far the hook protrudes beyond the arm's outer face"),
+        "lead_angle": Key(
+            float, REQUIRED, "deg", 0.0, 90.0, True, True, doc="alpha, lead ramp to the insertion axis"
+        ),
+        "return_angle": Key(
+            float,
+            REQUIRED,
+            "deg",
+            0.0,
+            90.0,
+            True,
+            False,
+            doc="alpha', retention face (90 = square, permanent)",
+        ),
+        "flat": _nonneg("mm", doc="land between the retention face and the lead ramp"),
     },
     "material": {
-        "youngs_modulus": _Key(float, check=_positive, doc="E, MPa"),
-        "poissons_ratio": _Key(float, check=_between(-1, 0.5), doc="nu"),
-        "density": _Key(float, check=_positive, doc="rho, t/mm^3"),
-        "rayleigh_alpha": _Key(float, 0.0, _nonneg, doc="mass-proportional damping, 1/s"),
-        "rayleigh_beta": _Key(float, 0.0, _nonneg, doc="stiffness-proportional damping, s"),
+        "youngs_modulus": _pos("MPa", doc="E, Young's modulus"),
+        "poissons_ratio": Key(float, REQUIRED, "", -1.0, 0.5, True, True, doc="nu, Poisson's ratio"),
+        "density": _pos("t/mm^3", doc="rho, density (ABS: 1.05e-9)"),
+        "rayleigh_alpha": _nonneg("1/s", 0.0, "mass-proportional Rayleigh damping"),
+        "rayleigh_beta": _nonneg("s", 0.0, "stiffness-proportional Rayleigh damping"),
     },
     "contact": {
-        "friction": _Key(float, 0.3, _nonneg, doc="Coulomb coefficient mu"),
-        "capacity": _Key(int, 64, _positive, doc="contact buffer slots"),
-        "spacing": _Key(float, 0.02, _positive, doc="candidate spacing along the section, mm"),
-        "width_spacing": _Key(float, 1.0, _positive, doc="candidate spacing across width, mm"),
-        "margin": _Key(float, 0.02, _nonneg, doc="distance below which a point is a candidate, mm"),
-        "compliance": _Key(float, 0.0, _nonneg, doc="contact regularisation per point, mm/N"),
-        "solver": _Key(str, "apgd", choices=("apgd", "admm", "spg", "pgs"), doc="cone-complementarity solver"),
-        "iterations": _Key(int, 500, _positive, doc="maximum solver iterations per step"),
-        "tolerance": _Key(float, 1e-6, _positive, doc="normalised KKT residual to stop at"),
-        "gradient": _Key(
-            str, "implicit", choices=("implicit", "unrolled"), doc="how jax.grad goes through the solve"
+        "friction": _nonneg("", 0.3, "Coulomb friction coefficient between the parts"),
+        "capacity": Key(int, 64, "", 1, doc="contact buffer slots: the most points in contact in one step"),
+        "width_spacing": _pos("mm", 1.0, "spacing of the contact candidate lines across the connector's width"),
+        "solver": Key(
+            str,
+            "apgd",
+            choices=("apgd", "spg"),
+            internal_choices=("admm", "pgs"),
+            doc="cone-complementarity solver: accelerated projected gradient (robust) or spectral "
+            "projected gradient (fewer iterations, faster)",
+        ),
+        "iterations": Key(int, 500, "", 1, doc="iteration cap per contact solve"),
+        "tolerance": _pos("", 1e-6, "normalised KKT residual the contact solve stops at"),
+        "spacing": _pos("mm", 0.02, "candidate spacing along the section outline", internal=True),
+        "margin": _nonneg("mm", 0.02, "distance below which a point is a contact candidate", internal=True),
+        "compliance": _nonneg("mm/N", 0.0, "contact regularisation per point", internal=True),
+        "gradient": Key(
+            str,
+            "implicit",
+            choices=("implicit", "unrolled"),
+            internal=True,
+            doc="how jax.grad goes through the contact solve",
         ),
     },
     "plug": {
-        "fillet": _Key(float, 0.1, _nonneg, doc="edge radius, mm"),
-        "thickness": _Key(float, None, _optional_positive, doc="x extent, mm (1.25 y_u)"),
-        "width": _Key(float, None, _optional_positive, doc="y extent, mm (b + 1)"),
-        "height": _Key(float, 0.5, _positive, doc="z extent, mm"),
-        "clearance": _Key(float, 0.02, _nonneg, doc="start gap above the hook top, mm"),
+        "fillet": _nonneg("mm", 0.1, "edge radius of the preset rigid part (a rounded block)"),
+        "thickness": _pos("mm", None, "x extent; default 1.25 undercut"),
+        "width": _pos("mm", None, "y extent; default connector width + 1"),
+        "height": _pos("mm", 0.5, "z extent"),
+        "clearance": _nonneg("mm", 0.02, "start gap above the hook's top", internal=True),
     },
     "motion": {
-        "speed": _Key(float, 10.0, _positive, doc="insertion speed along -z, mm/s"),
-        "stroke": _Key(float, None, _optional_positive, doc="travel, mm (default latches)"),
-        "withdraw": _Key(bool, False, doc="return along +z after the stroke"),
-        "control": _Key(str, "position", choices=("position", "impedance"), doc="plug drive"),
-        "coupling_stiffness": _Key(float, 200.0, _positive, doc="virtual coupling, N/mm"),
-        "coupling_damping": _Key(float, 2.0, _nonneg, doc="virtual coupling, N s/mm"),
-        "plug_mass": _Key(float, 1e-5, _positive, doc="plug mass under impedance control, t"),
+        "speed": _pos("mm/s", 10.0, "insertion speed along -z"),
+        "stroke": _pos("mm", None, "travel; default: the rigid part latches 0.3 mm below the hook"),
+        "withdraw": Key(bool, False, doc="return along +z after the stroke"),
+        "control": Key(
+            str,
+            "position",
+            choices=("position", "impedance"),
+            doc="the rigid part follows its path exactly (position) or through a virtual spring-damper "
+            "(impedance, the haptic case)",
+        ),
+        "coupling_stiffness": _pos("N/mm", 200.0, "virtual coupling stiffness (impedance control)"),
+        "coupling_damping": _nonneg("N s/mm", 2.0, "virtual coupling damping (impedance control)"),
+        "plug_mass": _pos("t", 1e-5, "the rigid part's mass (impedance control)"),
     },
     "solver": {
-        "dt": _Key(float, 1e-3, _positive, doc="time step, s"),
-        "method": _Key(str, "full", choices=("full", "modal", "segmented", "reduced")),
-        "element": _Key(str, "P2", choices=("P1", "P2")),
-        "mesh_size": _Key(float, 0.8, _positive, doc="element size, mm"),
-        "hook_mesh_size": _Key(float, None, _optional_positive, doc="element size at the hook"),
-        "sdf": _Key(str, "analytic", choices=("analytic", "mesh", "neural")),
-        "dtype": _Key(str, "float32", choices=("float32", "float64"), doc="rollout precision"),
-        # Segmented and reduced sockets (jsnap/_reduce.py, docs/reduction.md).
-        "hsv_tolerance": _Key(
-            float, 1e-2, _between(0, 1), doc="reduced: keep Hankel singular values above this x the largest"
+        "dt": _pos("s", 1e-3, "time step"),
+        "method": Key(
+            str,
+            "reduced",
+            choices=("reduced", "full", "segmented"),
+            internal_choices=("modal",),
+            doc="the deformable part's model: passive balanced reduction (real time), the full FEM "
+            "reference, or the segmented full model (the paper's Model 3)",
         ),
-        "subspace_modes": _Key(int, 30, _positive, doc="reduced: lowest modes per segment balanced over"),
-        "segment_margin": _Key(float, 1.0, _nonneg, doc="contact segment grown by this, mm"),
-        "segments": _Key(int, 1, _positive, doc="number of non-contact segments"),
-        "interface_stiffness": _Key(float, 1e6, _positive, doc="k_c joining segment copies, N/mm"),
-        "interface_damping": _Key(
-            float, None, lambda v: None if v is None or v >= 0 else "must be >= 0", doc="b_c, N s/mm (k_c dt/2)"
+        "element": Key(
+            str, "P2", choices=("P2", "P1"), doc="quadratic or linear tetrahedra (P1 locks in bending)"
         ),
+        "mesh_size": _pos("mm", 0.8, "element size"),
+        "sdf": Key(
+            str,
+            "analytic",
+            choices=("analytic", "mesh", "neural"),
+            doc="the rigid part's signed distance: exact formula, exact triangle mesh, or trained network",
+        ),
+        "dtype": Key(
+            str,
+            None,
+            choices=("float32", "float64"),
+            doc="rollout precision; default float32 for the reduced model and float64 for the others "
+            "(their float32 peak force is off by more than 1 %: benchmarks/precision.py)",
+        ),
+        "hsv_tolerance": Key(
+            float,
+            1e-2,
+            "",
+            0.0,
+            1.0,
+            True,
+            True,
+            doc="reduced: keep Hankel singular values above this fraction of the largest",
+        ),
+        "subspace_modes": Key(
+            int, 30, "", 1, internal=True, doc="reduced: lowest modes per segment balanced over"
+        ),
+        "segment_margin": _nonneg("mm", 1.0, "contact segment grown by this", internal=True),
+        "segments": Key(int, 1, "", 1, internal=True, doc="number of non-contact segments"),
+        "interface_stiffness": _pos("N/mm", 1e6, "k_c joining the segments' copies", internal=True),
+        "interface_damping": _nonneg("N s/mm", None, "b_c; default k_c dt / 2", internal=True),
     },
 }
 
+# A motion shorter than this many steps is refused: the contact events of a snap (ramp, flat,
+# release) each need several steps to be resolved at all.
+MIN_STEPS = 20
+# Elements more than this many times the thinnest feature leave it unresolved altogether.
+_COARSEST = 4.0
+# Tip deflection over arm length beyond which a linear (small-rotation) model is meaningless:
+# the tip would turn by ~1.5 y_u / L rad (0.375 rad, 21 degrees).
+_MAX_DEFLECTION_RATIO = 0.25
 
-def _coerce(name: str, spec: _Key, value: Any) -> Any:
+
+def _coerce(name: str, spec: Key, value: Any, internal: bool) -> Any:
     """Check type, finiteness, choices and range of one value; return it normalised."""
     if value is None and spec.default is None:
         return None
@@ -157,9 +266,11 @@ def _coerce(name: str, spec: _Key, value: Any) -> Any:
             raise SceneError(f"{name} = {value!r}: must be true or false")
     elif spec.kind is str and not isinstance(value, str):
         raise SceneError(f"{name} = {value!r}: must be a string")
-    if spec.choices is not None and value not in spec.choices:
-        raise SceneError(f"{name} = {value!r}: must be one of {', '.join(spec.choices)}")
-    if spec.check is not None:
+    if spec.choices is not None:
+        allowed = spec.choices + (spec.internal_choices if internal else ())
+        if value not in allowed:
+            raise SceneError(f"{name} = {value!r}: must be one of {', '.join(spec.choices)}")
+    if spec.kind in (float, int):
         problem = spec.check(value)
         if problem:
             raise SceneError(f"{name} = {value!r}: {problem}")
@@ -191,6 +302,9 @@ class Scene:
 
         Keyword form: ``scene.replace(solver__mesh_size=0.3)``.
         """
+        return self._replace(changes, kw, internal=False)
+
+    def _replace(self, changes, kw, internal: bool) -> Scene:
         changes = dict(changes or {})
         changes.update({k.replace("__", "."): v for k, v in kw.items()})
         raw = {s: dict(v) for s, v in self.sections.items()}
@@ -199,49 +313,59 @@ class Scene:
             if section not in raw:
                 raise SceneError(f"unknown section [{section}] in {dotted!r}")
             raw[section][key] = value
-        return Scene.from_dict(raw, source=self.source)
+        return Scene._validate(raw, self.source, internal=internal, given=set(changes))
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
-        """Plain nested dict (defaults included), e.g. for JSON summaries and cache keys."""
+        """Plain nested dict (defaults included), e.g. for JSON summaries."""
         return {s: dict(v) for s, v in self.sections.items()}
 
     @classmethod
     def from_dict(cls, raw: Mapping[str, Any], source: str = "<dict>") -> Scene:
         """Validate a nested mapping (as parsed from TOML) into a :class:`Scene`."""
+        return cls._validate(raw, source, internal=False, given=None)
+
+    @classmethod
+    def _validate(cls, raw, source, *, internal: bool, given) -> Scene:
+        """``given``: the dotted keys set by the caller (None: every key present in ``raw``);
+        internal keys among them are refused unless ``internal``."""
         if not isinstance(raw, Mapping):
             raise SceneError(f"a scene must be a table of sections, got {type(raw).__name__}")
         for section in raw:
-            if section not in _SCHEMA:
-                raise SceneError(f"unknown section [{section}]; expected one of {', '.join(_SCHEMA)}")
+            if section not in SCHEMA:
+                raise SceneError(f"unknown section [{section}]; expected one of {', '.join(SCHEMA)}")
         sections: dict[str, Mapping[str, Any]] = {}
-        for section, keys in _SCHEMA.items():
-            given = raw.get(section, {})
-            if not isinstance(given, Mapping):
-                raise SceneError(f"[{section}] must be a table, got {given!r}")
-            for key in given:
-                if key not in keys:
+        for section, keys in SCHEMA.items():
+            supplied = raw.get(section, {})
+            if not isinstance(supplied, Mapping):
+                raise SceneError(f"[{section}] must be a table, got {supplied!r}")
+            visible = [k for k, spec in keys.items() if not spec.internal]
+            for key in supplied:
+                spec = keys.get(key)
+                set_here = given is None or f"{section}.{key}" in given
+                if spec is None or (spec.internal and set_here and not internal):
                     raise SceneError(
-                        f"unknown key {section}.{key} = {given[key]!r}; [{section}] takes {', '.join(keys)}"
+                        f"unknown key {section}.{key} = {supplied[key]!r}; [{section}] takes {', '.join(visible)}"
                     )
             values = {}
             for key, spec in keys.items():
                 name = f"{section}.{key}"
-                if key in given:
-                    values[key] = _coerce(name, spec, given[key])
+                set_here = given is None or name in given
+                if key in supplied:
+                    values[key] = _coerce(name, spec, supplied[key], internal or not set_here)
                 elif spec.default is REQUIRED:
                     raise SceneError(f"{name} is required but missing ({spec.doc})")
                 else:
                     values[key] = spec.default
-                implemented = IMPLEMENTED.get((section, key))
-                if implemented is not None and values[key] not in implemented:
-                    raise SceneError(
-                        f"{name} = {values[key]!r}: not available in this version of jsnap "
-                        f"(available: {', '.join(implemented)})"
-                    )
             sections[section] = MappingProxyType(values)
         scene = cls(MappingProxyType(sections), source)
         _check_consistency(scene)
         return scene
+
+
+def with_internal(scene: Scene, changes: Mapping[str, Any]) -> Scene:
+    """``scene.replace(changes)`` that may also set internal keys and choices (for tests and
+    benchmarks: the solvers, models and settings that are not offered to users)."""
+    return scene._replace(changes, {}, internal=True)
 
 
 def _split(dotted: str) -> tuple[str, str]:
@@ -251,23 +375,35 @@ def _split(dotted: str) -> tuple[str, str]:
     return parts[0], parts[1]
 
 
-def connector_geometry(scene: Scene):
+def connector_geometry(scene: Scene) -> Cantilever:
     """The scene's connector as a :class:`jsnap._geometry.cantilever.Cantilever` (validated)."""
-    from jsnap._geometry.cantilever import Cantilever
-
     c = scene["connector"]
     keys = ("length", "thickness", "tip_thickness", "width", "undercut", "lead_angle")
     return Cantilever(**{k: c[k] for k in keys}, return_angle=c["return_angle"], flat=c["flat"])
 
 
+def motion_stroke(scene: Scene, geom: Cantilever) -> float:
+    """The stroke of the scene's motion, mm (``motion.stroke`` or the latching default)."""
+    p = scene["plug"]
+    return scene["motion"]["stroke"] or latching_stroke(p["height"], p["clearance"], geom.z_top - geom.length)
+
+
 def _check_consistency(scene: Scene) -> None:
-    """Checks that involve several keys (geometry the section cannot hold, plug sizes...)."""
-    # The geometry module validates the connector and names the key itself.
+    """Checks that involve several keys: geometry that cannot be built or cannot be modelled,
+    plug sizes, a motion too short for the time step, elements too coarse for the features."""
     c = scene["connector"]
     try:
-        connector_geometry(scene)
+        geom = connector_geometry(scene)
     except ValueError as err:
         raise SceneError(str(err)) from None
+    if c["undercut"] > _MAX_DEFLECTION_RATIO * c["length"]:
+        raise SceneError(
+            f"connector.undercut = {c['undercut']!r}: the arm must bend its tip {c['undercut']:g} mm on a "
+            f"{c['length']:g} mm length (more than {_MAX_DEFLECTION_RATIO:g} of it): the tip would turn by "
+            f"~{math.degrees(1.5 * c['undercut'] / c['length']):.0f} degrees, far beyond the small strains "
+            "and rotations of jsnap's linear model and of any plastic snap-fit; use a longer arm or a "
+            "smaller undercut"
+        )
     p = scene["plug"]
     half = 0.5 * min(p["thickness"] or 1.25 * c["undercut"], p["width"] or c["width"] + 1.0, p["height"])
     if p["fillet"] > half:
@@ -276,12 +412,38 @@ def _check_consistency(scene: Scene) -> None:
         )
     ct = scene["contact"]
     if ct["solver"] == "spg" and ct["gradient"] == "unrolled":
-        # Measured: 0.3 % off the solution's derivative on a well-conditioned problem solved to
-        # 1e-13, where unrolled APGD and ADMM agree with finite differences to 1e-5.
         raise SceneError(
             "contact.gradient = 'unrolled' with contact.solver = 'spg': SPG's spectral steps reach "
-            "past 2/||W||, so the unrolled iteration's derivative does not settle on the solution's; "
-            "use contact.gradient = 'implicit' (the default)"
+            "past 2/||W||, so the unrolled iteration's derivative does not settle on the solution's"
+        )
+    m, s = scene["motion"], scene["solver"]
+    stroke = motion_stroke(scene, geom)
+    duration = stroke / m["speed"] * (2 if m["withdraw"] else 1)
+    steps = duration / s["dt"]
+    if steps < MIN_STEPS:
+        raise SceneError(
+            f"solver.dt = {s['dt']!r}: the motion ({stroke:g} mm at {m['speed']:g} mm/s, {duration:g} s) "
+            f"would take {steps:.3g} steps; at least {MIN_STEPS} are needed to resolve the contact: "
+            f"use solver.dt <= {duration / MIN_STEPS:.3g} s"
+        )
+    features = {
+        "thickness": c["thickness"],
+        "tip_thickness": geom.h_tip,
+        "width": c["width"],
+        "undercut": c["undercut"],
+    }
+    name, thinnest = min(features.items(), key=lambda kv: kv[1])
+    if s["mesh_size"] > _COARSEST * thinnest:
+        raise SceneError(
+            f"solver.mesh_size = {s['mesh_size']!r}: elements more than {_COARSEST:g} times connector.{name} = "
+            f"{thinnest:g} mm, the thinnest feature, leave it unresolved; use solver.mesh_size <= {thinnest:g} mm"
+        )
+    if s["mesh_size"] > thinnest:
+        warnings.warn(
+            f"solver.mesh_size = {s['mesh_size']!r} is larger than connector.{name} = {thinnest:g} mm, the "
+            "thinnest feature: fewer than one element across it (a coarse, stiff model)",
+            SceneWarning,
+            stacklevel=4,
         )
 
 
@@ -299,6 +461,8 @@ def load_scene(path: str | Path | None = None) -> Scene:
         text = path.read_text()
     except FileNotFoundError:
         raise FileNotFoundError(f"scene file not found: {path}") from None
+    except (IsADirectoryError, PermissionError, UnicodeDecodeError) as err:
+        raise SceneError(f"{path}: cannot read the scene file ({type(err).__name__})") from None
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:

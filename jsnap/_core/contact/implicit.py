@@ -42,7 +42,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jsnap._core.contact import ContactSolution, _norm_estimate, _prepare, project_cone
+from jsnap._core.contact.algorithms import ContactSolution, _norm_estimate, _prepare, project_cone
 
 __all__ = ["implicit_solver"]
 

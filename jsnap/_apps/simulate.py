@@ -1,0 +1,264 @@
+"""``jsnap simulate``: run a scene, write what a user looks at, and say honestly how it went.
+
+Outputs in the ``--out`` folder (checked before anything is built):
+
+- ``forces.csv``: per step, time, travel, insertion force, the base wrench (force and moment),
+  the drive's force, energy and the step's status flags;
+- ``forces.png``: the force curves against travel and time;
+- ``vtu/socket.pvd`` with ``socket_*.vtu``: the deformed part for ParaView;
+- ``summary.json``: the strict-JSON summary (also printed with ``--json``).
+
+Timings are apart: ``build_seconds`` (mesh, assembly, reduction, the parameter-dependent
+operator), ``compile_seconds`` (XLA), and ``steps_per_second`` of the compiled rollout alone.
+A run whose result carries an error flag (non-finite values, energy created, dropped contacts,
+invalid parameters) writes its outputs, says what happened at which step, and exits with 1.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["OutputError", "check_out_dir", "design_guide_force", "simulate"]
+
+
+class OutputError(ValueError):
+    """The output folder cannot be used (the message names it and why)."""
+
+
+def check_out_dir(out) -> Path:
+    """The output folder, created if needed and checked writable, before any work is done.
+
+    Raises:
+        OutputError: ``out`` is a file, lies under a file, or cannot be written.
+    """
+    path = Path(out)
+    if path.exists() and not path.is_dir():
+        raise OutputError(f"--out {out}: exists and is not a folder")
+    for parent in path.parents:
+        if parent.exists() and not parent.is_dir():
+            raise OutputError(f"--out {out}: {parent} is a file, not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=path, prefix=".jsnap-write-check"):
+            pass
+    except OSError as err:
+        raise OutputError(f"--out {out}: cannot write there ({err.strerror or type(err).__name__})") from None
+    return path
+
+
+def design_guide_force(scene) -> float:
+    """Snap-fit design-guide mating force W = P (mu + tan a) / (1 - mu tan a), N.
+
+    P = b h^2 E eps / (6 L) with eps = 1.5 h y / L^2 (constant arm) or h y / (1.09 L^2) (arm
+    tapered to h/2); a beam-theory estimate (see the validation page for how far it is off).
+    """
+    c, m = scene["connector"], scene["material"]
+    L, h, b, y = c["length"], c["thickness"], c["width"], c["undercut"]
+    h_tip = c["tip_thickness"] or h
+    eps = y * h / (1.09 * L**2) if abs(h_tip - h / 2) < 1e-9 else 1.5 * h * y / L**2
+    P = b * h**2 * m["youngs_modulus"] * eps / (6 * L)
+    mu, ta = scene["contact"]["friction"], math.tan(math.radians(c["lead_angle"]))
+    return P * (mu + ta) / (1 - mu * ta)
+
+
+def _finite(x):
+    """A float for strict JSON: None where not finite."""
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def plot_forces(res, out: Path, guide: float, title: str) -> Path:
+    """``forces.png``: insertion, base and lateral force against travel and time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    travel = np.asarray(res.travel)
+    t = np.asarray(res.t) * 1e3
+    F = np.asarray(res.insertion_force)
+    fig, ax = plt.subplots(1, 2, figsize=(12, 4.5))
+    for a, xv, xl in ((ax[0], travel, "travel of the rigid part along -z (mm)"), (ax[1], t, "time (ms)")):
+        a.plot(xv, F, label="insertion force (N)", lw=1.6)
+        a.plot(
+            xv, np.linalg.norm(np.asarray(res.base_force), axis=1), label="|base force| (N)", lw=1.0, alpha=0.8
+        )
+        a.plot(
+            xv, np.asarray(res.lateral_force), label="lateral force on the rigid part, x (N)", lw=1.0, alpha=0.8
+        )
+        a.axhline(guide, color="k", ls="--", lw=0.8, label=f"design-guide mating force {guide:.2f} N")
+        a.axhline(0, color="0.6", lw=0.5)
+        a.set_xlabel(xl)
+        a.set_ylabel("force (N)")
+        a.grid(alpha=0.3)
+    if np.isfinite(F).any():
+        k = int(np.nanargmax(F))
+        ax[0].annotate(
+            f"peak {F[k]:.2f} N at {travel[k]:.2f} mm",
+            (travel[k], F[k]),
+            xytext=(8, 10),
+            textcoords="offset points",
+            fontsize=8,
+            arrowprops=dict(arrowstyle="-", lw=0.6),
+        )
+    ax[0].legend(fontsize=8, loc="lower left")
+    fig.suptitle(title)
+    fig.tight_layout()
+    path = out / "forces.png"
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def write_forces_csv(res, path: Path) -> Path:
+    """``forces.csv``: one row per step (see the module docstring for the columns)."""
+    cols = np.column_stack(
+        [
+            np.asarray(res.t),
+            np.asarray(res.travel),
+            np.asarray(res.insertion_force),
+            np.asarray(res.lateral_force),
+            np.asarray(res.base_force),
+            np.asarray(res.base_moment),
+            np.asarray(res.coupling_force),
+            np.asarray(res.energy),
+            np.asarray(res.flags),
+        ]
+    )
+    header = (
+        "t_s,travel_mm,insertion_force_N,lateral_force_N,base_fx_N,base_fy_N,base_fz_N,"
+        "base_mx_Nmm,base_my_Nmm,base_mz_Nmm,coupling_fx_N,coupling_fy_N,coupling_fz_N,"
+        "energy_Nmm,flags"
+    )
+    np.savetxt(path, cols, delimiter=",", header=header, comments="", fmt="%.8g")
+    return path
+
+
+def write_series(model, res, out: Path, frames: int = 100) -> Path:
+    """The deformed part at about ``frames`` times, as a ParaView series (``vtu/socket.pvd``)."""
+    import jax
+
+    from jsnap._geometry.mesh import write_vtu_series
+
+    nodes, cells, free = (np.asarray(a) for a in (model.mesh.nodes, model.mesh.cells, model.mesh.free))
+    every = max(1, res.x.shape[0] // frames)
+    with jax.enable_x64(True):
+        x = jax.numpy.asarray(res.x[::every], jax.numpy.float64)
+        disp_free = np.asarray(jax.vmap(model.part.free_displacement)(x))
+    disp = np.zeros((disp_free.shape[0], nodes.size))
+    disp[:, free] = disp_free
+    return write_vtu_series(
+        out / "vtu", "socket", nodes, cells, disp.reshape(-1, nodes.shape[0], 3), np.asarray(res.t)[::every]
+    )
+
+
+def _say(quiet: bool, message: str) -> None:
+    if not quiet:
+        print(message, file=sys.stderr, flush=True)
+
+
+def simulate(args) -> int:
+    """The ``simulate`` command (see the module docstring); returns the exit code."""
+    import jax
+
+    from jsnap._build.model import build_model
+    from jsnap._core.rollout import _check_controls, _whole
+    from jsnap._core.step import prepare
+    from jsnap._geometry.scene import load_scene
+
+    quiet = args.json
+    out = check_out_dir(args.out)
+    t0 = time.perf_counter()
+    scene = load_scene(args.scene)
+    if args.method:
+        scene = scene.replace({"solver.method": args.method})
+    model, report = build_model(scene, progress=not quiet)
+    with jax.enable_x64(True):
+        prepared = prepare(model)
+        jax.block_until_ready(prepared.op)
+        dtype = jax.numpy.dtype(model.dtype)
+        controls = jax.numpy.asarray(_check_controls(np.asarray(model.motion[1:])), dtype)
+        start = jax.numpy.asarray(model.plug_start, dtype)
+        t_build = time.perf_counter() - t0
+        _say(quiet, f"jsnap: built in {t_build:.1f} s; compiling the rollout ({model.n_steps} steps) ...")
+        t1 = time.perf_counter()
+        compiled = _whole.lower(model, prepared, controls, start, True).compile()
+        t_compile = time.perf_counter() - t1
+        _say(quiet, f"jsnap: compiled in {t_compile:.1f} s; running ...")
+        t2 = time.perf_counter()
+        res = compiled(model, prepared, controls, start, True)
+        jax.block_until_ready(res.energy)
+        t_run = time.perf_counter() - t2
+    status = res.status()
+    F = np.asarray(res.insertion_force)
+    base = np.asarray(res.base_force)
+    guide = design_guide_force(scene)
+    csv = write_forces_csv(res, out / "forces.csv")
+    title = f"jsnap: {Path(scene.source).name}, {model.method} {model.element}, {model.n_dof} dof, dt = {model.dt * 1e3:g} ms"
+    png = plot_forces(res, out, guide, title)
+    pvd = write_series(model, res, out)
+    warnings = []
+    residual = np.asarray(res.residual)
+    loose = residual > 100 * scene["contact"]["tolerance"]
+    if loose.any():
+        warnings.append(
+            f"the contact solve stopped above 100x contact.tolerance in {int(loose.sum())} of {F.size} steps "
+            "(raise contact.iterations for a tighter solve)"
+        )
+    peak = int(np.nanargmax(F)) if np.isfinite(F).any() else 0
+    reduction = report.reduction or {}
+    summary = {
+        "scene": scene.source,
+        "status": status,
+        "steps": int(F.size),
+        "dt": model.dt,
+        "method": model.method,
+        "element": model.element,
+        "dtype": model.dtype,
+        "dof": model.n_dof,
+        "full_dof": model.full_dof,
+        "reduced_orders": list(getattr(model.part, "orders", ())),
+        "contact_points": model.n_samples,
+        "steps_per_second": F.size / t_run,
+        "real_time_factor": F.size * model.dt / t_run,
+        "build_seconds": t_build,
+        "compile_seconds": t_compile,
+        "run_seconds": t_run,
+        "reduction_cached": reduction.get("cached"),
+        "peak_insertion_force_N": _finite(np.nanmax(F)) if np.isfinite(F).any() else None,
+        "travel_at_peak_mm": _finite(np.asarray(res.travel)[peak]),
+        "peak_base_force_N": _finite(np.nanmax(np.linalg.norm(base, axis=1)))
+        if np.isfinite(base).any()
+        else None,
+        "min_insertion_force_N": _finite(np.nanmin(F)) if np.isfinite(F).any() else None,
+        "design_guide_mating_force_N": guide,
+        "max_contact_overflow": int(np.max(np.asarray(res.overflow))),
+        "max_solver_residual": _finite(np.nanmax(residual)) if np.isfinite(residual).any() else None,
+        "outputs": {"csv": str(csv), "png": str(png), "pvd": str(pvd)},
+        "warnings": warnings,
+    }
+    text = json.dumps(summary, allow_nan=False)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False))
+    if args.json:
+        print(text)
+    else:
+        for w in warnings:
+            print(f"jsnap: warning: {w}", file=sys.stderr)
+        if summary["peak_insertion_force_N"] is not None:
+            print(
+                f"jsnap: {F.size} steps ({model.method} model, {model.n_dof} dof), peak insertion force "
+                f"{summary['peak_insertion_force_N']:.3f} N at {summary['travel_at_peak_mm']:.3f} mm (design guide "
+                f"{guide:.3f} N); {summary['steps_per_second']:.0f} steps/s ({summary['real_time_factor']:.1f}x real "
+                f"time); build {t_build:.1f} s, compile {t_compile:.1f} s; wrote {out}/"
+            )
+    if status != "ok":
+        print(f"jsnap: error: {status}", file=sys.stderr)
+        return 1
+    return 0

@@ -1,0 +1,85 @@
+"""The rigid part of the preset scenes: a rounded block sized from the connector (host side).
+
+Units: mm.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+from jsnap._geometry.cantilever import Cantilever
+
+__all__ = ["Plug", "default_plug", "rounded_box_mesh"]
+
+
+class Plug:
+    """The preset rigid part: a rounded box and where it starts.
+
+    Attributes:
+        half: (3,) half extents, mm.   radius: fillet radius, mm.
+        start: (3,) centre at t = 0, mm (in the frame of the deformable part's base).
+    """
+
+    def __init__(self, half, radius: float, start):
+        self.half = np.asarray(half, dtype=np.float64)
+        self.radius = float(radius)
+        self.start = np.asarray(start, dtype=np.float64)
+
+    def mesh(self):
+        """Its closed triangle mesh (``trimesh.Trimesh``), in its own frame."""
+        return rounded_box_mesh(self.half, self.radius)
+
+
+def default_plug(plug: dict, geom: Cantilever) -> Plug:
+    """The preset plug of a cantilever scene from the scene's ``[plug]`` table.
+
+    A rounded block whose face x = h_tip lies in the plane of the arm's outer face at the tip
+    (so it must push the hook by the full undercut), 1.25 y_u thick, b + 1 mm wide and
+    ``height`` tall, starting ``clearance`` above the hook's top (as in the CalculiX reference).
+    """
+    thick = plug["thickness"] or 1.25 * geom.undercut
+    width = plug["width"] or geom.width + 1.0
+    half = np.array([thick, width, plug["height"]]) / 2
+    start = np.array([geom.h_tip + half[0], 0.0, geom.z_top + plug["clearance"] + half[2]])
+    return Plug(half, plug["fillet"], start)
+
+
+def rounded_box_mesh(half_extents, radius, subdivisions=4):
+    """Closed triangle mesh of the rounded box of :func:`rounded_box_sdf` (host, trimesh).
+
+    Built as the convex hull of 8 icospheres of radius ``radius`` centred at the corners of the
+    inner box ``half_extents − radius``. After one or more subdivisions an icosphere has vertices
+    exactly on ±x, ±y, ±z, so the flat faces lie exactly at ``±half_extents``; the fillets are
+    tessellated, the mesh lying inside the exact solid by at most the icosphere's chord error
+    ``radius − sqrt(radius² − e²/3)`` for the longest icosphere edge ``e``. ``subdivisions=4``
+    gives 5516 triangles for the default plug (half extents (0.5, 2.5, 0.25), radius 0.1);
+    3 gives only 1484.
+
+    Args:
+        half_extents: (3,), mm.
+        radius: fillet radius, mm, ``0 ≤ radius ≤ min(half_extents)``; 0 gives the 12-triangle
+            box.
+        subdivisions: icosphere subdivision level (≥ 1).
+
+    Returns:
+        A watertight, consistently wound ``trimesh.Trimesh`` with outward normals, float64.
+    """
+    h = np.asarray(half_extents, dtype=np.float64)
+    radius = float(radius)
+    if h.shape != (3,) or not np.all(h > 0):
+        raise ValueError(f"half_extents must be 3 positive numbers, got {half_extents!r}")
+    if not 0.0 <= radius <= h.min():
+        raise ValueError(f"radius must lie in [0, min(half_extents) = {h.min()}], got {radius}")
+    if radius == 0.0:
+        return trimesh.creation.box(extents=2.0 * h)
+    if subdivisions < 1:
+        # Level 0 has no vertex on the axes, so the flat faces would sit inside ±half_extents.
+        raise ValueError(f"subdivisions must be >= 1, got {subdivisions}")
+    sphere = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0).vertices
+    corners = np.array(np.meshgrid(*[[-1.0, 1.0]] * 3, indexing="ij")).reshape(3, -1).T
+    points = (corners[:, None, :] * (h - radius) + radius * sphere[None]).reshape(-1, 3)
+    mesh = trimesh.convex.convex_hull(points)
+    if not (mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0):
+        raise RuntimeError("convex hull of the rounded box is not a closed outward mesh")
+    return mesh
