@@ -15,10 +15,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-import jsnap  # noqa: F401  (enables x64)
 from jsnap._core.contact import (
     ContactSolution,
-    _spd_inverse,
+    implicit_solver,
     kkt_residual,
     kkt_terms,
     project_cone,
@@ -28,7 +27,10 @@ from jsnap._core.contact import (
     solve_spg,
     symmetric_squeeze_problem,
 )
-from jsnap._core.implicit import implicit_solver
+from jsnap._core.contact.algorithms import _spd_inverse
+
+# Kernel tests in float64 (jsnap's scoped 64-bit mode, as its entry points use internally).
+pytestmark = pytest.mark.usefixtures("x64")
 
 # Derandomised so that CI sees the same examples every run; few examples, since every one is a
 # full solve. Solver functions are jitted once per shape (C = 8, C = 24) and shared.

@@ -15,14 +15,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jsnap._geometry.cantilever import (
-    Cantilever,
+from jsnap._geometry.cantilever import Cantilever, mesh_box, mesh_cantilever
+from jsnap._geometry.mesh import (
     MeshQualityError,
     TetMesh,
     check_quality,
     mean_ratio,
-    mesh_box,
-    mesh_cantilever,
     write_vtu,
     write_vtu_series,
 )

@@ -1,4 +1,5 @@
-"""PMI: energy behaviour, gradients, vmap, no recompilation, the modal form, order 2."""
+"""PMI (jsnap._core.pmi): energy behaviour, gradients, vmap, no recompilation, the modal form
+(jsnap._core.parts.ModalPart), order 2."""
 
 import diffrax
 import equinox as eqx
@@ -9,11 +10,17 @@ import pytest
 import scipy.linalg as sl
 
 from jsnap._build import fem as _fem
+from jsnap._build.modal import modal_part
 from jsnap._core import pmi as I
+from jsnap._core.params import Material
 from jsnap._geometry.cantilever import mesh_box
 
+from .conftest import ARM, free_blocks
+
+# Kernel tests in float64 (jsnap's scoped 64-bit mode, as its entry points use internally).
+pytestmark = pytest.mark.usefixtures("x64")
+
 RHO = 1.05e-9
-ARM = dict(L=10.0, h=1.2, b=4.0)  # as in conftest.py
 
 
 def run(blocks, mat, dt, x0, v0, steps, f=None, refine=0):
@@ -35,19 +42,19 @@ def test_energy_conserved_without_damping(small_arm, E):
     asm, blocks, _f, u = small_arm
     x0 = jnp.asarray(u[asm.free])
     _, _, e, e0 = jax.jit(run, static_argnums=(5, 7))(
-        blocks, I.Material.create(E, 0.35, RHO), 1e-3, x0, 0 * x0, 100_000, None, 1
+        blocks, Material.create(E, 0.35, RHO), 1e-3, x0, 0 * x0, 100_000, None, 1
     )
     assert float(jnp.max(jnp.abs(e - e0)) / e0) < 1e-8
 
 
 def test_plain_dense_drift_is_linear_in_steps(small_arm):
     """Without refinement the energy drifts, and linearly: the computed S_inv is the exact
-    inverse of a fixed S + dS, and dS acts as a spurious damping (``_integrate`` docstring). A
+    inverse of a fixed S + dS, and dS acts as a spurious damping (``jsnap._core.pmi`` docstring). A
     random walk of round-off would grow as sqrt(steps) instead (ratio 2.2 here, not 5)."""
     asm, blocks, _f, u = small_arm
     x0 = jnp.asarray(u[asm.free])
     _, _, e, e0 = jax.jit(run, static_argnums=(5,))(
-        blocks, I.Material.create(2200.0, 0.35, RHO), 1e-3, x0, 0 * x0, 50_000
+        blocks, Material.create(2200.0, 0.35, RHO), 1e-3, x0, 0 * x0, 50_000
     )
     drift = np.asarray((e - e0) / e0)
     assert np.max(np.abs(drift)) < 1e-7
@@ -58,14 +65,14 @@ def test_damping_never_adds_energy(small_arm):
     asm, blocks, _f, u = small_arm
     x0 = jnp.asarray(u[asm.free])
     for alpha, beta in [(50.0, 0.0), (0.0, 1e-5), (20.0, 1e-6)]:
-        _, _, e, e0 = run(blocks, I.Material.create(2200.0, 0.35, RHO, alpha, beta), 1e-4, x0, 0 * x0, 2000)
+        _, _, e, e0 = run(blocks, Material.create(2200.0, 0.35, RHO, alpha, beta), 1e-4, x0, 0 * x0, 2000)
         e = jnp.concatenate([e0[None], e])
         assert float(jnp.max(jnp.diff(e))) <= 1e-12 * float(e0)
         assert float(e[-1]) < 0.99 * float(e0)
 
 
 def loss(blocks, E, rho, x0):
-    x, _v, e, _ = run(blocks, I.Material.create(E, 0.35, rho), 1e-4, x0, 0 * x0, 200)
+    x, _v, e, _ = run(blocks, Material.create(E, 0.35, rho), 1e-4, x0, 0 * x0, 200)
     return jnp.sum(x**2) * 1e2 + jnp.mean(e)
 
 
@@ -95,15 +102,11 @@ def test_vmap_equals_loop_and_no_recompile(small_arm):
     assert fn._cache_size() == 1  # new parameter values, same compiled function
 
 
-@pytest.mark.parametrize("host", [True, False])
-def test_spd_inverse(monkeypatch, host):
-    """Both routes of ``spd_inverse`` (LAPACK potri on the host, XLA's Cholesky) against
-    scipy's general inverse of the matrix's symmetric part, exactly symmetric, its derivative
-    (along a direction that is not symmetric) against central differences, batched under vmap,
-    and NaN (not a wrong answer) for a matrix that is not positive definite. The order is not a
-    multiple of the host route's block, so its blocked symmetrise and mirror meet a ragged edge."""
-    monkeypatch.setattr(I, "_HOST_INVERSE_MIN", 0 if host else 10**9)
-    monkeypatch.setattr(I, "_BLOCK", 32)
+def test_spd_inverse():
+    """``spd_inverse`` (XLA's Cholesky) against scipy's general inverse of the matrix's
+    symmetric part, exactly symmetric, its derivative (along a direction that is not symmetric)
+    against central differences, batched under vmap, and NaN (not a wrong answer) for a matrix
+    that is not positive definite."""
     rng = np.random.default_rng(3)
     n = 120
     A = rng.standard_normal((n, n))
@@ -132,8 +135,10 @@ def test_spd_inverse(monkeypatch, host):
 
 
 # --------------------------------------------------------------------------------------------
-# Modal (diagonalised) PMI
+# Modal (diagonalised) PMI: the modal part (jsnap._core.parts.ModalPart)
 # --------------------------------------------------------------------------------------------
+
+NU = 0.35
 
 
 @pytest.fixture(scope="module")
@@ -142,79 +147,118 @@ def p2_arm():
     MPa): the plain dense path drifts ~1e-6 here over 1e5 steps (docs/status.md)."""
     asm = _fem.assemble(mesh_box(ARM["h"], ARM["b"], ARM["L"], 1.2), "P2")
     f = _fem.traction_load(asm, lambda x: np.isclose(x[2], ARM["L"]), [1.0, 0.0, 0.0])
-    u = _fem.solve_static(asm, 2200.0, 0.35, f)
-    fr = asm.free
-    blocks = I.SparseBlocks.from_scipy(*(m[fr][:, fr] for m in (asm.K_lam, asm.K_mu, asm.M1)))
-    return asm, blocks, f, u
+    u = _fem.solve_static(asm, 2200.0, NU, f)
+    return asm, free_blocks(asm), f, u
+
+
+def modal_of(asm, loaded=None):
+    """The :class:`ModalPart` of ``asm`` at nu = 0.35 (all its modes, jsnap._build.modal), with
+    one contact point on each free node in ``loaded`` (weight 1: a force there is a nodal load)
+    or, by default, none."""
+    if loaded is None:
+        nodes, weights = np.zeros((1, 1), np.int32), np.zeros((1, 1))
+    else:
+        nodes = np.asarray(loaded, np.int32)[:, None]
+        weights = np.ones(nodes.shape)
+    stencil = (np.zeros((nodes.shape[0], 8, 1), np.int32), np.zeros((nodes.shape[0], 8, 1)))
+    return modal_part(asm, NU, (nodes, weights), stencil)[0]
 
 
 @pytest.fixture(scope="module")
-def bases():
-    """One modal basis per arm (they depend on nu only), shared by the E sweep."""
-    cache = {}
+def modal_parts(cache):
+    """One modal part per arm (its modes depend on nu only), shared by the E sweep."""
+    parts = {}
 
-    def get(name, blocks):
-        if name not in cache:
-            cache[name] = jax.jit(I.modal_basis)(blocks, 0.35)
-        return cache[name]
+    def get(name, asm):
+        if name not in parts:
+            parts[name] = modal_of(asm)
+        return parts[name]
 
     return get
 
 
+def to_modal(part, blocks, x):
+    """Modal coordinates ``Phi' M1 x`` of a free-dof vector (``Phi' M1 Phi = I``)."""
+    return part.recon.T @ blocks.matvec(blocks.m1, x)
+
+
+def physical_energy(blocks, mat, x, v):
+    """``1/2 v'Mv + 1/2 x'Kx`` from the sparse blocks, N mm."""
+    k, m, _d = I.system_data(blocks, mat)
+    return 0.5 * v @ blocks.matvec(m, v) + 0.5 * x @ blocks.matvec(k, x)
+
+
+def modal_step(part, op, q, p, A=None, force=None):
+    """One PMI step of the modal part, as the scene's step takes it: the free midpoint velocity,
+    plus what forces (C, 3) at its contact points add. Returns (q_next, p_next, pbar)."""
+    pbar = part.free_velocity(op, q, p)
+    if force is not None:
+        pbar = pbar + part.contact_velocity(op, A, force)
+    return q + op.dt * pbar, 2.0 * pbar - p, pbar
+
+
 @eqx.filter_jit
-def modal_energy_run(blocks, basis, E, x0, steps):
-    op = I.modal_operator(blocks, I.Material.create(E, 0.35, RHO), 1e-3, basis)
-    q0, p0 = I.to_modal(blocks, op, x0), jnp.zeros(op.omega2.shape)
-    e0 = I.modal_energy(op, q0, p0)
-    g = jnp.zeros_like(q0)
+def modal_energy_run(part, blocks, E, x0, steps):
+    mat = Material.create(E, NU, RHO)
+    op = part.prepare(mat, 1e-3)
+    q0 = to_modal(part, blocks, x0)
+    p0 = jnp.zeros_like(q0)
+    e0 = part.energy(op, q0, p0)
 
     def body(c, _):
         q, p, dev = c
-        q, p, _ = I.modal_step(op, q, p, g)
-        return (q, p, jnp.maximum(dev, jnp.abs(I.modal_energy(op, q, p) - e0))), None
+        q, p, _ = modal_step(part, op, q, p)
+        return (q, p, jnp.maximum(dev, jnp.abs(part.energy(op, q, p) - e0))), None
 
     (q, p, dev), _ = jax.lax.scan(body, (q0, p0, 0.0), None, length=steps)
-    x, v = I.from_modal(op, q), I.from_modal(op, p)
-    phys0 = I.energy(blocks, op, x0, 0 * x0)
-    return dev / e0, e0 / phys0 - 1.0, I.energy(blocks, op, x, v) / phys0 - 1.0
+    x, v = part.free_displacement(q), part.free_displacement(p)
+    phys0 = physical_energy(blocks, mat, x0, 0 * x0)
+    return dev / e0, e0 / phys0 - 1.0, physical_energy(blocks, mat, x, v) / phys0 - 1.0
 
 
 @pytest.mark.parametrize("E", [1.0, 2200.0, 2e5])
 @pytest.mark.parametrize("arm", ["small_arm", "p2_arm"])
-def test_modal_energy_conserved_without_damping(request, bases, arm, E):
+def test_modal_energy_conserved_without_damping(request, modal_parts, arm, E):
     """The issue's bound, 1e-8 over 1e5 steps at dt = 1 ms from 1 MPa to 200 GPa, on both arms
     (measured 8e-12..2e-11). The modal energy is the physical energy ``1/2 v'Mv + 1/2 x'Kx``
-    of ``x = phi q``: checked at the start and, through ``from_modal``, at the end."""
-    _asm, blocks, _f, u = request.getfixturevalue(arm)
-    x0 = jnp.asarray(u[_asm.free])
-    drift, start, end = modal_energy_run(blocks, bases(arm, blocks), E, x0, 100_000)
+    of ``x = Phi q``: checked at the start and, through ``free_displacement``, at the end."""
+    asm, blocks, _f, u = request.getfixturevalue(arm)
+    x0 = jnp.asarray(u[asm.free])
+    drift, start, end = modal_energy_run(modal_parts(arm, asm), blocks, E, x0, 100_000)
     assert float(drift) <= 1e-8
     assert abs(float(start)) < 1e-9
     assert abs(float(end)) < 1e-8
 
 
-def test_modal_is_the_same_pmi(small_arm):
-    """Modal and dense PMI solve the same discrete equations: with Rayleigh damping and a load,
-    the trajectories agree to round-off, and the energy balance holds in modal coordinates."""
+def test_modal_is_the_same_pmi(small_arm, cache):
+    """Modal and dense PMI solve the same discrete equations: with Rayleigh damping and a load
+    (applied as forces at the modal part's contact points, one on each loaded node), the
+    trajectories agree to round-off, and the energy balance holds in modal coordinates."""
     asm, blocks, f, u = small_arm
     x0 = jnp.asarray(u[asm.free])
-    fj = jnp.asarray(-2.0 * f[asm.free])
-    mat = I.Material.create(2200.0, 0.35, RHO, 30.0, 2e-7)
+    f_free = -2.0 * f[asm.free]
+    fj = jnp.asarray(f_free)
+    loaded = np.flatnonzero(np.any(f_free.reshape(-1, 3) != 0, axis=1))  # free nodes
+    part = modal_of(asm, loaded)
+    mat = Material.create(2200.0, NU, RHO, 30.0, 2e-7)
     dense = I.pmi_operator(blocks, mat, 1e-4)
-    modal = I.modal_operator(blocks, mat, 1e-4)
-
-    g = I.modal_force(modal, fj)
+    modal = part.prepare(mat, 1e-4)
+    A, _W = part.contact_operator(modal, jnp.arange(loaded.size))
+    force = jnp.asarray(f_free.reshape(-1, 3)[loaded])  # (C, 3) N
+    g = part.recon.T @ fj  # the modal load Phi' f
+    damping = modal.rho * mat.alpha + mat.beta * modal.k  # Phi' D Phi, diagonal
 
     def body(c, _):
         (x, v), (q, p) = c
         x, v, _ = I.pmi_step(blocks, dense, x, v, fj)
-        q1, p1, pbar = I.modal_step(modal, q, p, g)
-        # E_{k+1} - E_k = T pbar'g - T pbar' diag(alpha + beta omega2) pbar
-        work = modal.dt * (pbar @ g - (modal.zeta2w * pbar) @ pbar)
-        gap = I.modal_energy(modal, q1, p1) - I.modal_energy(modal, q, p) - work
-        return ((x, v), (q1, p1)), (x, I.from_modal(modal, q1), gap)
+        q1, p1, pbar = modal_step(part, modal, q, p, A, force)
+        # E_{k+1} - E_k = T pbar'g - T pbar' diag(rho alpha + beta E w) pbar
+        work = modal.dt * (pbar @ g - (damping * pbar) @ pbar)
+        gap = part.energy(modal, q1, p1) - part.energy(modal, q, p) - work
+        return ((x, v), (q1, p1)), (x, part.free_displacement(q1), gap)
 
-    start = ((x0, 0 * x0), (I.to_modal(blocks, modal, x0), 0 * g))
+    q0 = to_modal(part, blocks, x0)
+    start = ((x0, 0 * x0), (q0, 0 * q0))
     _, (xd, xm, gap) = jax.jit(lambda s: jax.lax.scan(body, s, None, length=300))(start)
     scale = float(jnp.max(jnp.abs(xd)))
     assert float(jnp.max(jnp.abs(xd - xm))) < 1e-9 * scale
@@ -222,62 +266,56 @@ def test_modal_is_the_same_pmi(small_arm):
     assert float(jnp.max(jnp.abs(gap))) < 1e-12 * e0
 
 
-def modal_loss(blocks, E, nu, rho, x0):
-    op = I.modal_operator(blocks, I.Material.create(E, nu, rho, 0.0, 1e-7), 1e-4)
-    q0 = I.to_modal(blocks, op, x0)
-    g = jnp.zeros_like(q0)
+def modal_loss(part, blocks, E, nu, rho, x0):
+    op = part.prepare(Material.create(E, nu, rho, 0.0, 1e-7), 1e-4)
+    q0 = to_modal(part, blocks, x0)
 
     def body(c, _):
-        q, p, _ = I.modal_step(op, *c, g)
-        return (q, p), I.modal_energy(op, q, p)
+        q, p, _ = modal_step(part, op, *c)
+        return (q, p), part.energy(op, q, p)
 
     (q, _p), e = jax.lax.scan(body, (q0, 0 * q0), None, length=200)
-    return jnp.sum(I.from_modal(op, q) ** 2) * 1e2 + jnp.mean(e)
+    return jnp.sum(part.free_displacement(q) ** 2) * 1e2 + jnp.mean(e)
 
 
-def test_modal_gradient_matches_finite_differences(small_arm):
-    """d/dE and d/drho pass through scalars only, d/dnu through the eigensolver."""
+def test_modal_gradient_matches_finite_differences(small_arm, modal_parts):
+    """d/dE and d/drho pass through scalars only; nu, which the modes are computed for, has a
+    NaN derivative (not a silent zero)."""
     asm, blocks, _f, u = small_arm
+    part = modal_parts("small_arm", asm)
     x0 = jnp.asarray(u[asm.free])
-    point = [2200.0, 0.35, RHO]
-    g = jax.jit(jax.grad(modal_loss, argnums=(1, 2, 3)))(blocks, *point, x0)
+    point = [2200.0, NU, RHO]
+    g = jax.jit(jax.grad(modal_loss, argnums=(2, 3, 4)))(part, blocks, *point, x0)
     loss = jax.jit(modal_loss)
-    for i, h in enumerate([1e-3, 1e-6, RHO * 1e-6]):
+    for i, h in [(0, 1e-3), (2, RHO * 1e-6)]:
         args = list(point)
         args[i] = point[i] + h
-        lp = loss(blocks, *args, x0)
+        lp = loss(part, blocks, *args, x0)
         args[i] = point[i] - h
-        lm = loss(blocks, *args, x0)
+        lm = loss(part, blocks, *args, x0)
         assert float(g[i]) == pytest.approx(float((lp - lm) / (2 * h)), rel=1e-5)
+    assert np.isnan(float(g[1]))
 
 
-def test_modal_basis_misuse_is_an_error(small_arm):
-    _asm, blocks, _f, _u = small_arm
-    basis = I.modal_basis(blocks, 0.35, n_modes=4)
-    with pytest.raises(eqx.EquinoxRuntimeError, match="another Poisson's ratio"):
-        I.modal_operator(blocks, I.Material.create(2200.0, 0.3, RHO), 1e-3, basis)
-    with pytest.raises(ValueError, match="n_modes = 0"):
-        I.modal_basis(blocks, 0.35, n_modes=0)
+def test_modal_part_refuses_another_poisson_ratio(small_arm, modal_parts):
+    asm, _blocks, _f, _u = small_arm
+    part = modal_parts("small_arm", asm)
+    with pytest.raises(eqx.EquinoxRuntimeError, match="another Poisson ratio"):
+        part.prepare(Material.create(2200.0, 0.3, RHO), 1e-3)
 
 
-def test_truncated_basis_is_exact_on_its_span(small_arm):
-    """A start in the span of the lowest 6 modes stays there under full PMI, so the 6-mode
-    model reproduces the full dense trajectory (and its vmap over materials equals a loop)."""
+def test_modal_vmap_over_materials_equals_loop(small_arm, modal_parts):
+    """The modal part's operator and steps batch over materials: vmap equals a loop."""
     asm, blocks, _f, u = small_arm
-    basis = I.modal_basis(blocks, 0.35, n_modes=6)
-    mat = I.Material.create(2200.0, 0.35, RHO)
-    op6 = I.modal_operator(blocks, mat, 1e-4, basis)
-    x0 = I.from_modal(op6, I.to_modal(blocks, op6, jnp.asarray(u[asm.free])))
-    x_dense = run(blocks, mat, 1e-4, x0, 0 * x0, 100)[0]
+    part = modal_parts("small_arm", asm)
+    q0 = to_modal(part, blocks, jnp.asarray(u[asm.free]))
 
     def modal_run(E, rho):
-        op = I.modal_operator(blocks, I.Material.create(E, 0.35, rho), 1e-4, basis)
-        q = I.to_modal(blocks, op, x0)
-        step = lambda c, _: (I.modal_step(op, *c, jnp.zeros_like(q))[:2], None)  # noqa: E731
-        (q, _p), _ = jax.lax.scan(step, (q, 0 * q), None, length=100)
-        return I.from_modal(op, q)
+        op = part.prepare(Material.create(E, NU, rho), 1e-4)
+        step = lambda c, _: (modal_step(part, op, *c)[:2], None)  # noqa: E731
+        (q, _p), _ = jax.lax.scan(step, (q0, 0 * q0), None, length=100)
+        return part.free_displacement(q)
 
-    np.testing.assert_allclose(modal_run(2200.0, RHO), x_dense, atol=1e-10 * float(jnp.max(jnp.abs(x0))))
     Es, rhos = jnp.array([1e3, 2e3, 4e3]), jnp.array([1e-9, 1.1e-9, 1.2e-9])
     batched = jax.vmap(modal_run)(Es, rhos)
     looped = jnp.stack([modal_run(E, r) for E, r in zip(Es, rhos, strict=True)])
@@ -300,7 +338,7 @@ def tiny_arm():
     lam, mu = _fem.lame(2200.0, 0.35)
     K, M = (lam * Kl + mu * Km).toarray(), RHO * M1.toarray()
     w2, phi = sl.eigh(K, M)
-    return I.SparseBlocks.from_scipy(Kl, Km, M1), K, M, f[fr], np.sqrt(w2), phi
+    return _fem.sparse_blocks(Kl, Km, M1), K, M, f[fr], np.sqrt(w2), phi
 
 
 def exact_solution(K, M, w, phi, alpha, beta, x0, f, t):
@@ -371,7 +409,7 @@ def test_second_order_against_diffrax(tiny_arm, case):
     norm = np.linalg.norm(x_exact)
     assert np.linalg.norm(x_ref - x_exact) < 1e-10 * norm
 
-    mat = I.Material.create(2200.0, 0.35, RHO, alpha, beta)
+    mat = Material.create(2200.0, 0.35, RHO, alpha, beta)
     errors = []
     for j in range(4):
         n = n0 * 2**j

@@ -14,10 +14,13 @@ import pytest
 import trimesh
 
 import jsnap
-from jsnap._build import neural_sdf as nsdf
 from jsnap._apps.cli import _SDF_SETTINGS
 from jsnap._apps.cli import main as cli_main
-from jsnap._core.sdf import MeshSDF, mesh_sdf_and_normal, rounded_box_mesh
+from jsnap._build import neural_sdf as nsdf
+from jsnap._build.cache import FORMAT_VERSION, ArtefactError
+from jsnap._build.sdf import mesh_sdf_from_trimesh
+from jsnap._core.sdf import NeuralSDF, mesh_sdf_and_normal, neural_sdf, neural_sdf_and_normal
+from jsnap._geometry.plug import rounded_box_mesh
 
 # A plug-like rounded block (428 triangles) and settings that train in a couple of seconds.
 HALF = np.array([0.5, 1.0, 0.4])
@@ -47,6 +50,7 @@ def _open_box():
 # ----------------------------------------------------------------------------------------------
 
 
+@pytest.mark.usefixtures("x64")
 def test_training_reduces_error_to_a_bound_against_the_exact_sdf(mesh, trained):
     net, info = trained
     loss = np.asarray(info["loss"])
@@ -55,9 +59,9 @@ def test_training_reduces_error_to_a_bound_against_the_exact_sdf(mesh, trained):
     # Independent points, uniform in the shell |φ| ≤ 0.2 mm, against the exact mesh SDF.
     rng = np.random.default_rng(7)
     x = rng.uniform(mesh.bounds[0] - 0.2, mesh.bounds[1] + 0.2, (6000, 3))
-    phi, n = (np.asarray(a) for a in mesh_sdf_and_normal(MeshSDF.from_trimesh(mesh), x))
+    phi, n = (np.asarray(a) for a in mesh_sdf_and_normal(mesh_sdf_from_trimesh(mesh), x))
     band = np.abs(phi) <= 0.2
-    pred, pred_n = (np.asarray(a, np.float64) for a in nsdf.neural_sdf_and_normal(net, x[band]))
+    pred, pred_n = (np.asarray(a, np.float64) for a in neural_sdf_and_normal(net, x[band]))
     err = np.abs(pred - phi[band])
     assert err.mean() < 0.03  # measured 0.013 mm
     assert err.mean() < 0.3 * np.abs(phi[band]).mean()  # far better than guessing the surface
@@ -78,10 +82,11 @@ def _fd_gradient(net, p, h=1e-6):
     for k in range(3):
         e = np.zeros(3)
         e[k] = h
-        g[:, k] = (np.asarray(nsdf.neural_sdf(net, p + e)) - np.asarray(nsdf.neural_sdf(net, p - e))) / (2 * h)
+        g[:, k] = (np.asarray(neural_sdf(net, p + e)) - np.asarray(neural_sdf(net, p - e))) / (2 * h)
     return g
 
 
+@pytest.mark.usefixtures("x64")
 def test_normal_is_the_normalised_gradient(trained):
     net = trained[0].astype(jnp.float64)
     rng = np.random.default_rng(0)
@@ -89,29 +94,30 @@ def test_normal_is_the_normalised_gradient(trained):
     inside = rng.uniform(-0.8, 0.8, (40, 3)) * [1, 1.5, 0.8]
     outside = rng.normal(size=(40, 3)) * 4.0
     for p in (inside, outside):
-        phi, n = nsdf.neural_sdf_and_normal(net, p)
+        phi, n = neural_sdf_and_normal(net, p)
         assert phi.dtype == jnp.float64 and n.shape == p.shape
         np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-12)
         g = _fd_gradient(net, p)
         np.testing.assert_allclose(n, g / np.linalg.norm(g, axis=1, keepdims=True), atol=1e-6)
         # jax.grad of φ points the same way.
-        ag = jax.vmap(jax.grad(lambda q: nsdf.neural_sdf(net, q)))(jnp.asarray(p))
+        ag = jax.vmap(jax.grad(lambda q: neural_sdf(net, q)))(jnp.asarray(p))
         np.testing.assert_allclose(n, ag / np.linalg.norm(ag, axis=1, keepdims=True), atol=1e-10)
 
 
+@pytest.mark.usefixtures("x64")
 def test_far_field_is_positive_and_continuous(trained):
     net = trained[0].astype(jnp.float64)
     lo = np.asarray(net.center - net.half)
     hi = np.asarray(net.center + net.half)
     far = np.array([[30.0, 0.0, 0.0], [0.0, -50.0, 3.0], [100.0, 100.0, 100.0]])
     gap = np.linalg.norm(far - np.clip(far, lo, hi), axis=1)
-    phi = np.asarray(nsdf.neural_sdf(net, far))
+    phi = np.asarray(neural_sdf(net, far))
     assert np.all(phi >= gap) and np.all(phi <= gap + 2 * np.max(hi - lo))
     # Across the domain's face x = hi_x, φ changes by about the step.
     eps = 1e-7
     on = np.array([hi[0], 0.1, 0.05])
     dx = np.array([eps, 0.0, 0.0])
-    step = nsdf.neural_sdf(net, on + dx) - nsdf.neural_sdf(net, on - dx)
+    step = neural_sdf(net, on + dx) - neural_sdf(net, on - dx)
     assert abs(float(step)) < 10 * eps
 
 
@@ -119,19 +125,19 @@ def test_jit_vmap_grad_and_dtypes(trained):
     net = trained[0]
     rng = np.random.default_rng(1)
     batch = jnp.asarray(rng.uniform(-1, 1, (4, 32, 3)), jnp.float32)
-    phi, n = jax.jit(jax.vmap(nsdf.neural_sdf_and_normal, (None, 0)))(net, batch)
+    phi, n = jax.jit(jax.vmap(neural_sdf_and_normal, (None, 0)))(net, batch)
     assert phi.shape == (4, 32) and n.shape == (4, 32, 3) and phi.dtype == jnp.float32
     for i in range(4):
-        p_i, n_i = nsdf.neural_sdf_and_normal(net, batch[i])
+        p_i, n_i = neural_sdf_and_normal(net, batch[i])
         np.testing.assert_allclose(phi[i], p_i, rtol=1e-5, atol=1e-6)
         np.testing.assert_allclose(n[i], n_i, rtol=1e-5, atol=1e-5)
     # Arbitrary leading shapes, and gradients w.r.t. the weights (e.g. for fine-tuning).
-    assert nsdf.neural_sdf(net, batch).shape == (4, 32)
-    g = jax.grad(lambda m: jnp.sum(nsdf.neural_sdf_and_normal(m, batch[0])[0] ** 2))(net)
+    assert neural_sdf(net, batch).shape == (4, 32)
+    g = jax.grad(lambda m: jnp.sum(neural_sdf_and_normal(m, batch[0])[0] ** 2))(net)
     leaves = jax.tree.leaves(g.params)
     assert all(np.all(np.isfinite(x)) for x in leaves) and any(np.any(x != 0) for x in leaves)
     with pytest.raises(ValueError, match=r"shape \(\.\.\., 3\)"):
-        nsdf.neural_sdf(net, jnp.zeros((5, 2)))
+        neural_sdf(net, jnp.zeros((5, 2)))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -150,10 +156,10 @@ def test_save_load_round_trip(trained, mesh, tmp_path):
     assert meta["mesh_hash"] == nsdf.mesh_hash(mesh)
     assert meta["config"] == TINY.to_dict()
     x = np.random.default_rng(2).normal(size=(64, 3))
-    for a, b in zip(nsdf.neural_sdf_and_normal(net, x), nsdf.neural_sdf_and_normal(back, x), strict=True):
+    for a, b in zip(neural_sdf_and_normal(net, x), neural_sdf_and_normal(back, x), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     with np.load(path) as z:
-        assert int(z["format_version"]) == nsdf.FORMAT_VERSION
+        assert int(z["format_version"]) == FORMAT_VERSION
         assert json.loads(str(z["meta"]))["architecture"]["width"] == TINY.width
 
 
@@ -173,28 +179,28 @@ def test_corrupt_or_mismatched_files_are_rejected(trained, mesh, tmp_path):
         kernel = z["param/hidden_0/kernel"].copy()
     kernel[0, 0] += 1e-3
     _rewrite(p, **{"param/hidden_0/kernel": kernel})
-    with pytest.raises(nsdf.NeuralSDFFileError, match=r"edited\.npz: checksum mismatch"):
+    with pytest.raises(ArtefactError, match=r"edited\.npz: checksum mismatch"):
         nsdf.load(p)
 
     p = _save(net, info, tmp_path / "truncated.npz")
     p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])
-    with pytest.raises(nsdf.NeuralSDFFileError, match=r"truncated\.npz: unreadable or corrupt"):
+    with pytest.raises(ArtefactError, match=r"truncated\.npz: unreadable or corrupt"):
         nsdf.load(p)
 
     p = _save(net, info, tmp_path / "other.npz")
     other = nsdf.cache_key(mesh, nsdf.NeuralSDFConfig(**{**TINY.to_dict(), "seed": 1}))
-    with pytest.raises(nsdf.NeuralSDFFileError, match="another mesh or other settings"):
+    with pytest.raises(ArtefactError, match="made for something else"):
         nsdf.load(p, key=other)
     assert nsdf.load(p, key=key)[1]["key"] == key
 
     p = _save(net, info, tmp_path / "future.npz")
-    _rewrite(p, format_version=np.asarray(nsdf.FORMAT_VERSION + 1))
-    with pytest.raises(nsdf.NeuralSDFFileError, match=f"format version {nsdf.FORMAT_VERSION + 1}"):
+    _rewrite(p, format_version=np.asarray(FORMAT_VERSION + 1))
+    with pytest.raises(ArtefactError, match=f"format version {FORMAT_VERSION + 1}"):
         nsdf.load(p)
 
     p = tmp_path / "foreign.npz"
     np.savez(p, weights=np.zeros(3))
-    with pytest.raises(nsdf.NeuralSDFFileError, match="not a jsnap neural SDF"):
+    with pytest.raises(ArtefactError, match="not a jsnap artefact"):
         nsdf.load(p)
 
     with pytest.raises(FileNotFoundError, match=r"missing\.npz"):
@@ -210,12 +216,12 @@ def test_cache_trains_once_then_loads_and_replaces_a_corrupt_entry(mesh, tmp_pat
     assert info2["cached"] and info2["path"] == info["path"]
     assert info2["report"] == info["report"]
     x = np.random.default_rng(3).normal(size=(16, 3))
-    np.testing.assert_array_equal(nsdf.neural_sdf(net, x), nsdf.neural_sdf(again, x))
+    np.testing.assert_array_equal(neural_sdf(net, x), neural_sdf(again, x))
     # Damage the cached file: never used, reported, retrained and replaced.
     raw = bytearray(info["path"].read_bytes())
     raw[len(raw) // 2] ^= 0xFF
     info["path"].write_bytes(bytes(raw))
-    with pytest.warns(UserWarning, match="retraining"):
+    with pytest.warns(UserWarning, match="not using it: the neural SDF is made again"):
         _, info3 = nsdf.load_or_train(mesh, QUICK, report_points=500)
     assert not info3["cached"]
     with warnings.catch_warnings():
@@ -260,7 +266,7 @@ def test_shipped_weights_are_read_before_training(mesh, trained, tmp_path, monke
     got, got_info = nsdf.load_or_train(mesh, TINY)
     assert got_info["cached"] and got_info["shipped"] and got_info["path"] == shipped
     x = np.random.default_rng(6).normal(size=(16, 3))
-    np.testing.assert_array_equal(nsdf.neural_sdf(got, x), nsdf.neural_sdf(net, x))
+    np.testing.assert_array_equal(neural_sdf(got, x), neural_sdf(net, x))
     assert not (tmp_path / "cache" / "neural_sdf").exists()  # nothing written
     with pytest.raises(AssertionError, match="trained"):
         nsdf.load_or_train(mesh, TINY, retrain=True)
@@ -281,7 +287,7 @@ def test_shipped_weights_are_the_default_plugs(tmp_path, monkeypatch):
     within the training-time accuracy of the exact SDF of the plug that the default scene
     builds now. Where that plug's mesh has the shipped key they are used without training;
     where a mesh library triangulates it differently (another key), the plug is trained."""
-    from jsnap._build.model import _plug_geometry
+    from jsnap._geometry.plug import default_plug
     from jsnap._geometry.scene import connector_geometry
 
     files = sorted(nsdf.SHIPPED.glob("*.npz"))
@@ -289,8 +295,7 @@ def test_shipped_weights_are_the_default_plugs(tmp_path, monkeypatch):
     net, meta = nsdf.load(files[0])  # verifies the checksum
     assert meta["config"] == nsdf.NeuralSDFConfig().to_dict() and files[0].stem == meta["key"][:32]
     scene = jsnap.load_scene()
-    half, radius, _ = _plug_geometry(scene, connector_geometry(scene))
-    plug = rounded_box_mesh(half, radius)
+    plug = default_plug(scene["plug"], connector_geometry(scene)).mesh()
     report = nsdf.accuracy_report(net, plug, points=4000)
     assert report["mae_mm"] < 2e-3 and report["normal_median_deg"] < 2.0, report
 
@@ -374,7 +379,9 @@ def test_cli_train_sdf(mesh, tmp_path, monkeypatch, capsys):
 
 def test_scene_with_neural_sdf_builds_and_dispatches(tmp_path, monkeypatch):
     from jsnap._build import model as _model
-    from jsnap._core.step import _plug_sdf
+    from jsnap._core.sdf import BoundedSDF
+    from jsnap._geometry.plug import default_plug
+    from jsnap._geometry.scene import connector_geometry
 
     monkeypatch.setenv("JSNAP_CACHE", str(tmp_path / "cache"))
     # The default settings take a minute to train; the wiring is the same with tiny ones.
@@ -382,34 +389,37 @@ def test_scene_with_neural_sdf_builds_and_dispatches(tmp_path, monkeypatch):
         _model, "load_or_train", lambda m, **kw: nsdf.load_or_train(m, QUICK, report_points=500, **kw)
     )
     scene = jsnap.load_scene().replace(
-        {"solver.sdf": "neural", "solver.element": "P1", "solver.mesh_size": 1.5}
+        {"solver.sdf": "neural", "solver.method": "full", "solver.element": "P1", "solver.mesh_size": 1.5}
     )
     model = jsnap.build(scene)
-    assert model.sdf == "neural" and isinstance(model.neural_sdf, nsdf.NeuralSDF)
+    assert isinstance(model.rigid, BoundedSDF) and isinstance(model.rigid.exact, NeuralSDF)
     # Trained on the scene's own plug mesh, and found in the cache under its key.
     assert (tmp_path / "cache" / "neural_sdf").is_dir()
-    plug = model.host.plug_mesh
+    plug = default_plug(scene["plug"], connector_geometry(scene)).mesh()
     assert nsdf.load_or_train(plug, QUICK)[1]["cached"]
-    q = jnp.asarray(np.random.default_rng(4).uniform(-1, 1, (10, 3)))
-    phi, n = _plug_sdf(model, q)
-    ref_phi, ref_n = nsdf.neural_sdf_and_normal(model.neural_sdf, q)
-    np.testing.assert_array_equal(phi, ref_phi)
-    np.testing.assert_array_equal(n, ref_n)
-    # The array leaves cast with the model (rollouts run in float32).
-    cast = jax.tree.map(lambda a: a.astype(jnp.float32), model.neural_sdf)
-    assert _plug_sdf(eqx_replace(model, cast), q.astype(jnp.float32))[0].dtype == jnp.float32
+    with jax.enable_x64(True):  # the model's float64 kernels, called directly
+        q = jnp.asarray(np.random.default_rng(4).uniform(-1, 1, (10, 3)))
+        phi, n = model.rigid.scene_query(q, model.contact.margin)
+        ref_phi, ref_n = neural_sdf_and_normal(model.rigid.exact, q)
+        np.testing.assert_array_equal(phi, ref_phi)
+        np.testing.assert_array_equal(n, ref_n)
+        # The array leaves cast with the model (rollouts run in float32).
+        cast = jax.tree.map(lambda a: a.astype(jnp.float32), model.rigid.exact)
+        query = eqx_replace(model, cast).rigid.scene_query(q.astype(jnp.float32), model.contact.margin)
+        assert query[0].dtype == jnp.float32
 
 
+@pytest.mark.usefixtures("x64")
 @pytest.mark.parametrize("n_contact", [40, 300])
 def test_step_query_is_the_network_where_contact_needs_it(mesh, trained, n_contact):
-    """The step's neural query (``_sim._plug_sdf``: the network at the points nearest the
-    plug's box, in blocks of ``_MESH_SDF_FEW``, the box's distance elsewhere) against the network
-    at every point: the same values and normals wherever a contact decision needs them (below
-    the margin), the same decisions everywhere, with one block (40 near points) and several
-    (300), under ``vmap`` (every block evaluated) and with fewer points than the blocks hold."""
-    from types import SimpleNamespace
-
-    from jsnap._core import step as _sim
+    """The step's neural query (``BoundedSDF.scene_query`` of the network over the plug's box,
+    as ``solver.sdf = "neural"`` builds it: the network at the points nearest the box, in blocks
+    of ``_NEAR_BLOCK``, the box's distance elsewhere) against the network at every point: the
+    same values and normals wherever a contact decision needs them (below the margin), the same
+    decisions everywhere, with one block (40 near points) and several (300), under ``vmap``
+    (every block evaluated) and with fewer points than the blocks hold."""
+    from jsnap._build.model import _NEURAL_SLACK
+    from jsnap._core import sdf as _sdf
 
     net = trained[0].astype(jnp.float64)
     margin = 0.02
@@ -421,12 +431,13 @@ def test_step_query_is_the_network_where_contact_needs_it(mesh, trained, n_conta
     off = surf + mesh.face_normals[face] * rng.uniform(0.1, 0.6, (500, 1))
     far = rng.uniform(-3, 3, (200, 3))
     q = jnp.asarray(rng.permutation(np.concatenate([near, off, far])))
-    model = SimpleNamespace(sdf="neural", neural_sdf=net, plug_half=jnp.asarray(HALF), margin=margin)
-    query = jax.jit(lambda q: _sim._plug_sdf(model, q))
-    ref, ref_n = nsdf.neural_sdf_and_normal(net, q)
+    box = _sdf.RoundedBoxSDF(jnp.asarray(HALF), jnp.asarray(0.0, jnp.float64))
+    rigid = _sdf.BoundedSDF(net, box, _NEURAL_SLACK)
+    query = jax.jit(lambda q: rigid.scene_query(q, margin))
+    ref, ref_n = neural_sdf_and_normal(net, q)
     need = np.asarray(ref < margin)
     assert np.sum(need) >= 0.9 * n_contact
-    assert (np.sum(need) <= _sim._MESH_SDF_FEW) == (n_contact == 40)
+    assert (np.sum(need) <= _sdf._NEAR_BLOCK) == (n_contact == 40)
     for phi, n in (query(q), [a[0] for a in jax.vmap(query)(q[None])]):
         np.testing.assert_allclose(phi[need], ref[need], rtol=0, atol=1e-12)
         np.testing.assert_allclose(n[need], ref_n[need], rtol=0, atol=1e-10)
@@ -435,7 +446,7 @@ def test_step_query_is_the_network_where_contact_needs_it(mesh, trained, n_conta
         np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-12)
     # Fewer points than the blocks hold: the last block overlaps the one before.
     sub = q[:200]
-    phi_s, _ = jax.jit(lambda q: _sim._plug_sdf(model, q))(sub)
+    phi_s, _ = jax.jit(lambda q: rigid.scene_query(q, margin))(sub)
     np.testing.assert_allclose(phi_s[need[:200]], ref[:200][need[:200]], rtol=0, atol=1e-12)
     np.testing.assert_array_equal(phi_s < margin, need[:200])
 
@@ -443,4 +454,4 @@ def test_step_query_is_the_network_where_contact_needs_it(mesh, trained, n_conta
 def eqx_replace(model, net):
     import equinox as eqx
 
-    return eqx.tree_at(lambda m: m.neural_sdf, model, net)
+    return eqx.tree_at(lambda m: m.rigid.exact, model, net)

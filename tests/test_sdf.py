@@ -8,15 +8,17 @@ import numpy as np
 import pytest
 import trimesh
 
-import jsnap  # noqa: F401  (enables float64)
+from jsnap._build.sdf import mesh_sdf_from_trimesh
 from jsnap._core.sdf import (
-    MeshSDF,
     mesh_sdf,
     mesh_sdf_and_normal,
-    rounded_box_mesh,
     rounded_box_sdf,
     rounded_box_sdf_and_normal,
 )
+from jsnap._geometry.plug import rounded_box_mesh
+
+# Kernel tests in float64 (jsnap's scoped 64-bit mode, as its entry points use internally).
+pytestmark = pytest.mark.usefixtures("x64")
 
 H = np.array([0.5, 2.5, 0.25])  # default plug half extents
 R = 0.1  # default fillet radius
@@ -37,7 +39,7 @@ def _l_prism():
 @pytest.fixture(scope="module")
 def plug():
     mesh = rounded_box_mesh(H, R)
-    return mesh, MeshSDF.from_trimesh(mesh)
+    return mesh, mesh_sdf_from_trimesh(mesh)
 
 
 def _chord_error(radius, subdivisions):
@@ -222,7 +224,7 @@ def test_plug_mesh_sdf_within_chord_of_analytic(plug):
     assert diff.max() > 0.2 * _chord_error(R, SUBDIV)  # the bound is not vacuous
 
     # A sharp box is meshed exactly.
-    sharp = MeshSDF.from_trimesh(rounded_box_mesh(H, 0.0))
+    sharp = mesh_sdf_from_trimesh(rounded_box_mesh(H, 0.0))
     np.testing.assert_allclose(mesh_sdf(sharp, pts), rounded_box_sdf(pts, H, 0.0), atol=1e-14)
 
 
@@ -264,7 +266,7 @@ def _brute_force_closest(mesh, pts):
 @pytest.mark.parametrize("which", ["plug", "torus", "l_prism"])
 def test_mesh_sdf_matches_trimesh(plug, which):
     mesh = {"plug": lambda: plug[0], "torus": _torus, "l_prism": _l_prism}[which]()
-    sdf = plug[1] if which == "plug" else MeshSDF.from_trimesh(mesh)
+    sdf = plug[1] if which == "plug" else mesh_sdf_from_trimesh(mesh)
     rng = np.random.default_rng(4)
     pts = _test_points(mesh, rng)
     phi, n = (np.asarray(x) for x in mesh_sdf_and_normal(sdf, pts))
@@ -345,16 +347,15 @@ def test_mesh_sdf_chunking_jit_vmap(plug):
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
 @pytest.mark.parametrize("n_contact", [40, 300])
 def test_scene_mesh_query_exact_where_contact_needs_it(plug, n_contact, dtype):
-    """The step's mesh query (``_sim._plug_sdf``, ``_near_plug_sdf``) against the brute force at
-    every point.
+    """The step's mesh query (``BoundedSDF.scene_query`` of the mesh SDF over its analytic
+    rounded box, as ``solver.sdf = "mesh"`` builds it) against the brute force at every point.
 
-    40 points within the margin: the usual query (one block of ``_MESH_SDF_FEW``); 300: more
-    than that, further blocks up to ``_MESH_SDF_POINTS``. Each case checks which regime its
+    40 points within the margin: the usual query (one block of ``_NEAR_BLOCK``); 300: more
+    than that, further blocks up to ``_NEAR_POINTS``. Each case checks which regime its
     points are in, so that both are exercised.
     """
-    from types import SimpleNamespace
-
-    from jsnap._core import step as _sim
+    from jsnap._build.model import _MESH_SLACK
+    from jsnap._core import sdf as _sdf
 
     mesh, sdf = plug
     margin = 0.02
@@ -364,19 +365,13 @@ def test_scene_mesh_query_exact_where_contact_needs_it(plug, n_contact, dtype):
     rest = rest[np.asarray(mesh_sdf(sdf, rest)) > 2 * margin]
     pts = np.concatenate([_test_points(mesh, rng, n_near=n_contact, n_far=0, band=margin), rest])
     sdf = sdf.astype(dtype)
-    model = SimpleNamespace(
-        sdf="mesh",
-        mesh_sdf=sdf,
-        plug_half=jnp.asarray(H, dtype),
-        plug_radius=jnp.asarray(R, dtype),
-        margin=margin,
-    )
+    rigid = _sdf.BoundedSDF(sdf, _sdf.RoundedBoxSDF(jnp.asarray(H, dtype), jnp.asarray(R, dtype)), _MESH_SLACK)
     q = jnp.asarray(pts, dtype)
-    phi, n = jax.jit(lambda q: _sim._plug_sdf(model, q))(q)
+    phi, n = jax.jit(lambda q: rigid.scene_query(q, margin))(q)
     ref, ref_n = mesh_sdf_and_normal(sdf, q)
-    near = np.asarray(ref < margin + _sim._NEAR_SLACK)
-    few = np.sum(near) <= _sim._MESH_SDF_FEW
-    assert few == (n_contact == 40) and np.sum(near) <= _sim._MESH_SDF_POINTS
+    near = np.asarray(ref < margin + _MESH_SLACK)
+    few = np.sum(near) <= _sdf._NEAR_BLOCK
+    assert few == (n_contact == 40) and np.sum(near) <= _sdf._NEAR_POINTS
     tol = 1e-6 if dtype == jnp.float32 else 1e-13
     # Exact (the same brute force) where a contact decision needs it; a lower bound elsewhere.
     np.testing.assert_allclose(phi[near], ref[near], atol=tol, rtol=0)
@@ -386,7 +381,7 @@ def test_scene_mesh_query_exact_where_contact_needs_it(plug, n_contact, dtype):
     np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=10 * tol)
     # Fewer points than the blocks hold (the last block overlaps the one before).
     sub = q[:200]
-    phi_s, _ = jax.jit(lambda q: _sim._plug_sdf(model, q))(sub)
+    phi_s, _ = jax.jit(lambda q: rigid.scene_query(q, margin))(sub)
     near_s = near[:200]
     np.testing.assert_allclose(phi_s[near_s], ref[:200][near_s], atol=tol, rtol=0)
     np.testing.assert_array_equal(phi_s < margin, ref[:200] < margin)
@@ -418,19 +413,19 @@ def test_mesh_errors_and_orientation():
     box = trimesh.creation.box(extents=(1.0, 2.0, 3.0))
     holed = trimesh.Trimesh(box.vertices, box.faces[1:], process=False)
     with pytest.raises(ValueError, match="watertight"):
-        MeshSDF.from_trimesh(holed)
+        mesh_sdf_from_trimesh(holed)
     faces = box.faces.copy()
     faces[0] = faces[0][::-1]
     with pytest.raises(ValueError, match="winding"):
-        MeshSDF.from_trimesh(trimesh.Trimesh(box.vertices, faces, process=False))
+        mesh_sdf_from_trimesh(trimesh.Trimesh(box.vertices, faces, process=False))
 
     inverted = trimesh.Trimesh(box.vertices, box.faces[:, ::-1], process=False)
     assert inverted.volume < 0
     with pytest.warns(UserWarning, match="inwards"):
-        flipped = MeshSDF.from_trimesh(inverted)
+        flipped = mesh_sdf_from_trimesh(inverted)
     pts = jnp.array([[0.0, 0.0, 0.0], [0.7, 0.1, 0.2], [0.0, 0.0, 2.0]])
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        ref = mesh_sdf(MeshSDF.from_trimesh(box), pts)
+        ref = mesh_sdf(mesh_sdf_from_trimesh(box), pts)
     np.testing.assert_allclose(ref, [-0.5, 0.2, 0.5], atol=1e-15)
     np.testing.assert_array_equal(mesh_sdf(flipped, pts), ref)

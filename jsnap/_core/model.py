@@ -10,6 +10,8 @@ if and only if it is an array. Units: mm, N, MPa, s, tonne.
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import numpy as np
@@ -148,4 +150,4 @@ class Model(eqx.Module):
 
     def astype(self, dtype) -> Model:
         """The model with every floating array in ``dtype`` (rollouts cast it themselves)."""
-        return eqx.tree_at(lambda m: m.dtype, cast_floats(self, dtype), str(np.dtype(dtype)))
+        return dataclasses.replace(cast_floats(self, dtype), dtype=str(np.dtype(dtype)))

@@ -125,8 +125,9 @@ def _check_controls(controls, batched: bool = False):
     if isinstance(controls, np.ndarray):
         bad = ~np.isfinite(controls).all(axis=-1)
         if bad.any():
-            i = np.unravel_index(int(np.argmax(bad)), bad.shape)
-            raise ValueError(f"controls must be finite; row {i} is {controls[i]}")
+            i = tuple(int(k) for k in np.unravel_index(int(np.argmax(bad)), bad.shape))
+            row = i[0] if len(i) == 1 else i  # (rollout, row) for a batch
+            raise ValueError(f"controls must be finite; row {row} is {controls[i]}")
     return controls
 
 
@@ -374,14 +375,15 @@ def rollout_batch(
 
     Returns:
         A :class:`Result` whose arrays have the batch axis first. It equals a loop of
-        :func:`rollout` over the batch.
+        :func:`rollout` over the batch, but for invalid parameters: a rollout whose parameters
+        are NaN or out of range is flagged (``Result.ok`` False for it, its outputs NaN) while
+        the others run, where :func:`rollout` raises.
 
     Raises:
         ValueError: nothing batched, batch sizes that differ, or what :func:`rollout` raises.
     """
     dtype = _dtype(model, dtype)
     params = model.params if params is None else params
-    params.check()
     if controls is not None:
         controls = jnp.asarray(_check_controls(controls, batched=True), dtype)
     if plug_start is not None:

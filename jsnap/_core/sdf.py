@@ -97,7 +97,7 @@ def _rounded_box_parts(p, h, r):
     phi = out_len + jnp.minimum(q_max, 0.0) - r
     outside = out_len > 0.0
     g_out = q_pos / jnp.where(outside, out_len, 1.0)[..., None]
-    g_in = jax.nn.one_hot(jnp.argmax(q, axis=-1), 3, dtype=q.dtype)
+    g_in = jax.nn.one_hot(jax.lax.argmax(q, q.ndim - 1, jnp.int32), 3, dtype=q.dtype)
     g = jnp.where(outside[..., None], g_out, g_in)
     n = g * jnp.where(p >= 0.0, 1.0, -1.0)
     return phi, n, g

@@ -101,6 +101,16 @@ class StepOutput(eqx.Module):
 
 def _prepare(model: Model, params: Params) -> Prepared:
     """:func:`prepare` without the host-side check (traced parameters)."""
+    demoted = {str(a.dtype) for a in jax.tree_util.tree_leaves(model.part) if jnp.issubdtype(a.dtype, jnp.floating)}
+    if demoted != {"float64"}:
+        # A float32 model would be factorised from rounded blocks: on the coarse default hook its
+        # snap moved by whole steps (3.5 N in a 26 N peak). Say so rather than compute it.
+        raise ValueError(
+            f"prepare needs the model's float64 arrays, but its part holds {', '.join(sorted(demoted))}: "
+            "it was cast (model.astype) or demoted by JAX outside 64-bit mode (e.g. unpickled or made "
+            "without jax.enable_x64); prepare the model jsnap.build returned, or load it inside "
+            "`with jax.enable_x64(True):`"
+        )
     return Prepared(params, model.part.prepare(params.material, model.dt), params_valid(params))
 
 
@@ -366,6 +376,7 @@ def _step(model: Model, prepared: Prepared, state: State, control):
     material = prepared.params.material
     base_force, base_moment = part.base_wrench(material, T, x, v, v_new, vbar)
     finite = jnp.all(jnp.isfinite(x_new)) & jnp.all(jnp.isfinite(v_new)) & jnp.all(jnp.isfinite(Gamma))
+    finite = finite & jnp.all(jnp.isfinite(plug_new)) & jnp.all(jnp.isfinite(coupling))
     flags = (
         jnp.where(prepared.valid, 0, status.INVALID_PARAMS)
         | jnp.where(finite, 0, status.NON_FINITE)

@@ -30,12 +30,28 @@ def x64(fn):
     in the precision asked for. ``jax_enable_x64`` is a setting of the whole process; rather than
     switching it on at import (which would change every other JAX program in the process, an RL
     policy's for one), each public entry point enters ``jax.enable_x64(True)`` around its own
-    work. Arrays jsnap returns keep their dtype (float32 by default). Inside a user's ``jit``,
-    ``grad`` or ``vmap`` the scope applies while jsnap's part of the program is traced.
+    work. Arrays jsnap returns keep their dtype (float32 by default).
+
+    A JAX transformation of the user's (``jit``, ``grad``, ``vmap``) compiles its program after
+    jsnap's function has returned, outside that scope: calls traced by one must therefore run
+    with 64-bit mode on around the transformation (``with jax.enable_x64(True): jax.jit(f)(x)``),
+    and are refused with that advice otherwise.
     """
 
     @functools.wraps(fn)
     def wrapped(*args, **kwargs):
+        if not jax.config.jax_enable_x64 and any(
+            isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves((args, kwargs))
+        ):
+            # JAX lowers a transformed program after the transformation returns, so a scope
+            # opened here would be closed by then, and the float64 parts of jsnap's program would
+            # be lowered in 32-bit mode (which fails, or worse, rounds them).
+            raise RuntimeError(
+                f"jsnap.{fn.__name__} is being traced by a JAX transformation (jit, grad, vmap, ...) "
+                "started outside JAX's 64-bit mode. jsnap precomputes in float64, so run the "
+                "transformation inside `with jax.enable_x64(True):` (only that block is affected), "
+                "or enable 64-bit mode for the process (jax.config.update('jax_enable_x64', True))"
+            )
         with jax.enable_x64(True):
             return fn(*args, **kwargs)
 
