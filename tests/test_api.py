@@ -377,3 +377,14 @@ def test_cli_exits_non_zero_on_a_flagged_result(tmp_path, capsys):
     assert summary["status"].startswith("step ") and "contact.capacity" in summary["status"]
     assert "jsnap: error: step " in captured.err
     assert (out / "forces.csv").is_file()
+
+
+def test_a_build_that_would_not_fit_in_memory_is_refused_naming_the_setting():
+    """A dense model of 30 000 dof needs ~43 GiB: refused before anything is allocated, with
+    the setting to change; the reduced model of the same part fits."""
+    from jsnap._build.model import BuildError, check_memory
+
+    with pytest.raises(BuildError, match=r"solver\.method = 'full' with 30000 dof needs about 40\.2 GiB.*"
+                       r"solver\.method = 'reduced' or a larger solver\.mesh_size"):  # fmt: skip
+        check_memory(30000, "full", available=16 * 2**30)
+    assert check_memory(30000, "reduced", available=16 * 2**30) < 16 * 2**30

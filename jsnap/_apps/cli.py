@@ -172,9 +172,10 @@ def main(argv=None) -> int:
     )
     cache.add_argument("--json", action="store_true", help="print a JSON summary to stdout")
     args = parser.parse_args(argv)
-    from jsnap._apps.xla import configure_xla_cpu
+    from jsnap._apps.xla import _backend_started, configure_xla_cpu
 
-    configure_xla_cpu()
+    if not _backend_started():  # called in a process that already computed (tests): leave it
+        configure_xla_cpu()
     if args.command == "cache":
         return cache_command(args)
     if args.command in ("simulate", "train-sdf", "fit"):

@@ -24,7 +24,7 @@ one-step jumps that contact events make in the simulated history, see :func:`smo
   in variables whitened by the Gauss–Newton metric ``JᵀJ`` (E and friction both scale the
   force, so the valley is long and narrow; whitened, the first step is the Gauss–Newton step).
 - Gradients: ``jax.grad`` of the whole rollout, through contact (implicit differentiation of the
-  contact solve, ``_implicit``).
+  contact solve, ``jsnap._core.contact.implicit``).
 - Uncertainty: the Gauss–Newton (Laplace) covariance from ``J = ∂F/∂θ`` (forward mode, one
   pass per parameter) and the residual variance σ², in its sandwich form for the smoothed
   residuals; standard errors in the parameters' own units by the delta method. They assume

@@ -48,6 +48,8 @@ _NEURAL_SLACK = 5e-2
 # factor, the inverse and the symmetrised copies) or its modes computed (K, M, the eigenvectors
 # and LAPACK's workspace).
 _DENSE_COPIES = 6
+# Columns of the reduction's dense n x k arrays, at most (see check_memory).
+_REDUCTION_COLUMNS = 2000
 # Fraction of the available memory a build may plan to use.
 _MEMORY_SHARE = 0.8
 
@@ -127,7 +129,9 @@ def check_memory(n_dof: int, method: str, available: int | None = None) -> int:
     """Estimated bytes of the build and ``prepare`` of an ``n_dof`` part by ``method``; raises
     :class:`BuildError` naming the settings to change when it would not fit in memory."""
     dense = method in ("full", "modal", "segmented")
-    estimate = _DENSE_COPIES * 8 * n_dof**2 if dense else 64 * 8 * n_dof * 100
+    # The reduction's largest arrays are dense n x k: the full part's static responses to unit
+    # loads at the contact and interface dofs (k ~ 1000 on the shipped hooks), a few at once.
+    estimate = _DENSE_COPIES * 8 * n_dof**2 if dense else _DENSE_COPIES * 8 * n_dof * _REDUCTION_COLUMNS
     available = available_memory() if available is None else available
     if estimate > _MEMORY_SHARE * available:
         hint = "solver.method = 'reduced' or a larger solver.mesh_size" if dense else "a larger solver.mesh_size"

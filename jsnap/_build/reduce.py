@@ -1,7 +1,7 @@
 """Segmentation and passive balanced model reduction of the socket (the paper's Models 3 and 4).
 
 **Segmentation** (``solver.method = "segmented"``). The elements that own the faces of the
-contact candidate points and of their normal stencils (``_model.build``), grown by
+contact candidate points and of their normal stencils (``jsnap._build.model``), grown by
 ``solver.segment_margin`` mm, form the *contact segment*; the other elements form
 ``solver.segments`` non-contact segments (cut by graph distance from the contact segment).
 Every segment has its own copy of the nodes it shares with another; the copies are joined by
@@ -13,7 +13,7 @@ The joined system is again a linear PMI system, block-diagonal but for the coupl
 with ``Dg`` the difference operator of the joined copies. It is passive for any ``k_c, b_c >= 0``
 and tends to the full model as ``k_c`` grows. The coupling is eliminated analytically once per
 parameter set: with dense operators it is part of ``S^-1`` (a Schur complement in all but
-name, see :meth:`ReducedSocket.prepare`).
+name, see :meth:`jsnap._core.parts.ReducedPart.prepare`).
 
 **Balanced reduction** (``solver.method = "reduced"``). Each segment's displacement is
 ``x_i = V_i z_i`` (a one-sided congruence), so ``M_r = V'MV``, ``K_r = V'KV``, ``D_r = V'DV``
@@ -584,7 +584,7 @@ def segment_basis(
 # Building the part (host)
 # --------------------------------------------------------------------------------------------
 
-# Arrays of a built segmented/reduced socket, in the order of the ReducedSocket fields.
+# Arrays of a built segmented/reduced part (the fields of jsnap._core.parts.ReducedPart).
 _ARRAYS = (
     "kl", "km", "m1", "coupling_rows", "out_kl", "out_km", "out_m1", "node_rows",
     "sample_nodes", "sample_weights", "stencil_nodes", "stencil_weights", "recon", "recon_index",
@@ -604,8 +604,8 @@ def _contact_maps(asm: Assembly, seg: Segmentation, nodes: np.ndarray, weights: 
     return contact, idx
 
 
-def _socket_arrays(asm, seg, blocks, reactions, bases, sample, stencil) -> tuple[dict, tuple[int, ...]]:
-    """The ReducedSocket arrays (float64 numpy) for per-segment bases (None: identity)."""
+def _part_arrays(asm, seg, blocks, reactions, bases, sample, stencil) -> tuple[dict, tuple[int, ...]]:
+    """The part's arrays (float64 numpy) for per-segment bases (None: identity)."""
     n_seg = seg.n_segments
     sizes = [3 * len(seg.nodes[i]) for i in range(n_seg)]
     identity = bases is None
@@ -806,7 +806,7 @@ def _build(asm: Assembly, seed_faces, sample, stencil, normals, settings, progre
     bases, info = reduce_bases(
         asm, seg, blocks, material, sample, normals, settings["hsv_tolerance"], settings["subspace_modes"]
     )
-    arrays, orders = _socket_arrays(asm, seg, blocks, reactions, [b.V for b in bases], sample, stencil)
+    arrays, orders = _part_arrays(asm, seg, blocks, reactions, [b.V for b in bases], sample, stencil)
     seconds = time.perf_counter() - t0
     meta = dict(
         orders=list(orders),
@@ -855,7 +855,7 @@ def build_part(asm: Assembly, seed_faces, sample, stencil, normals, scene, *, pr
     if s["method"] == "segmented":
         seg = segment(asm, seed_faces, s["segment_margin"], s["segments"])
         blocks, reactions = zip(*(segment_blocks(asm, seg, i) for i in range(seg.n_segments)), strict=True)
-        arrays, orders = _socket_arrays(asm, seg, blocks, reactions, None, sample, stencil)
+        arrays, orders = _part_arrays(asm, seg, blocks, reactions, None, sample, stencil)
         info = dict(orders=list(orders), interface_pairs=len(seg.pairs))
     elif s["method"] == "reduced":
         arrays, info = load_or_build(asm, seed_faces, sample, stencil, normals, scene, progress=progress)

@@ -25,7 +25,7 @@ pure step ``(u, v) -> (u, v)`` on free dofs (mm, mm/s), run by :func:`simulate`:
   residual ``rtol``: ``(2/T) M (vbar - v_k) + f(u_k + T/2 vbar) = 0``; steps whose Newton
   iteration does not converge within ``max_iter`` are reported, not hidden.
 * ``"verlet"``: velocity Verlet (symplectic, explicit; consistent mass, solved by Cholesky).
-* ``"linear_pmi"``: passive midpoint integration of the linearised model (``_integrate``).
+* ``"linear_pmi"``: passive midpoint integration of the linearised model (``jsnap._core.pmi``).
 
 Units: mm, N, MPa, s, tonne; energies in N·mm (mJ).
 """

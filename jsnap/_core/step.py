@@ -101,7 +101,9 @@ class StepOutput(eqx.Module):
 
 def _prepare(model: Model, params: Params) -> Prepared:
     """:func:`prepare` without the host-side check (traced parameters)."""
-    demoted = {str(a.dtype) for a in jax.tree_util.tree_leaves(model.part) if jnp.issubdtype(a.dtype, jnp.floating)}
+    demoted = {
+        str(a.dtype) for a in jax.tree_util.tree_leaves(model.part) if jnp.issubdtype(a.dtype, jnp.floating)
+    }
     if demoted != {"float64"}:
         # A float32 model would be factorised from rounded blocks: on the coarse default hook its
         # snap moved by whole steps (3.5 N in a 26 N peak). Say so rather than compute it.

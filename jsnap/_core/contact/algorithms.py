@@ -44,25 +44,21 @@ from jsnap._core.util import safe_norm
 
 # Power iterations for the step size. W is small (3C ≤ a few hundred), so 50 matvecs cost
 # about as much as 50 solver iterations; the estimate they give is a lower bound of ‖W‖, hence
-# the safety factor (and the cap by the trace, a guaranteed upper bound). With 30 iterations,
-# random test problems with clustered top eigenvalues came out 4 % below ‖W‖ even after the
-# factor 1.1; with 50, the worst of 300 was 1 % above. Session 14 tried 300 other problems (3C =
-# 12-192: low-rank Wishart, a top cluster over a bulk up to 0.99 of it, near-duplicate rows): the
-# worst came out at 0.864 ‖W‖ in float32 (0.945 in float64) before the factor, so L can be ~5 %
-# short: a step ~5 % past FISTA's 1/‖W‖ (a projected-gradient step converges below 2/‖W‖, and
-# the solver returns its best iterate by the residual). Lanczos with 10 steps and full
-# reorthogonalisation was closer (worst 0.932) but not faster: 419-557 against 381-509 us per
-# step on the 1344-dof reduced scene with light contact, side by side (the LAPACK eigensolver of
-# its 10 x 10 Ritz matrix and five small dots per step), the float64 forces the same to 2e-8 N.
+# the safety factor (and the cap by the trace, a guaranteed upper bound). On 300 random problems
+# with clustered top eigenvalues (3C = 12-192: low-rank Wishart, a top cluster over a bulk up to
+# 0.99 of it, near-duplicate rows) the worst estimate was 0.864 ‖W‖ in float32 (0.945 in float64)
+# before the factor, so L can be ~5 % short: a step ~5 % past FISTA's 1/‖W‖ (a projected-gradient
+# step converges below 2/‖W‖, and the solver returns its best iterate by the residual). Lanczos
+# with 10 steps and full reorthogonalisation is closer (worst 0.932) but not faster on the
+# scenes' problems (the LAPACK eigensolver of its Ritz matrix and five small dots per step).
 _POWER_ITERS = 50
 _POWER_SAFETY = 1.1
 # The power iteration stops once ‖Wv − ρv‖ ≤ _POWER_TOL ρ (ρ = vᵀWv, v the unit iterate): v is
-# then an eigenvector to that tolerance, and ρ within it of an eigenvalue. Every contact problem
-# of the 1344-dof reduced scene's light rollout has one eigenvalue well above the rest (points
-# of one stiff hook): there the iteration settles after 7 iterations at most (5 at the median,
-# the 227 contact solves of the rollout in float32), ‖W‖ the same to round-off, where the 50
-# cost ~7 µs of its ~100 µs step (session 23). Clustered top eigenvalues keep the residual up
-# (the iterate mixes their eigenvectors), so those problems still take the 50.
+# then an eigenvector to that tolerance, and ρ within it of an eigenvalue. The scenes' contact
+# problems have one eigenvalue well above the rest (points of one stiff hook): there the
+# iteration settles after 5-7 iterations, ‖W‖ the same to round-off, where the 50 cost ~7 % of a
+# light reduced step. Clustered top eigenvalues keep the residual up (the iterate mixes their
+# eigenvectors), so those problems still take the 50.
 _POWER_TOL = 1e-3
 # Solver iterations per block of the frozen scan (see _frozen_scan).
 _BLOCK = 16
@@ -313,7 +309,7 @@ def _while(step, init, done, max_iters):
     """``_frozen_scan`` without the trace, as a ``lax.while_loop``: the same iterates and the
     same final carry (it stops where the scan freezes), at a fraction of the cost per iteration
     (no ``lax.cond`` and no carry copies), but not reverse-differentiable. For solves whose
-    derivatives are taken implicitly (``_implicit``).
+    derivatives are taken implicitly (``jsnap._core.contact.implicit``).
 
     Each trip of the loop makes ``_UNROLL`` steps, the later ones frozen (a select) once
     ``done`` or past ``max_iters``: at these sizes a step costs its ~30 kernel launches, and the
@@ -641,7 +637,7 @@ def _spd_inverse(A):
     recursively: with ``A = [[P, Q], [Q', R]]``, ``T = P⁻¹Q`` and the Schur complement
     ``Z = R − Q'T`` (SPD), ``A⁻¹ = [[P⁻¹ + T Z⁻¹ T', −T Z⁻¹], [−Z⁻¹ T', Z⁻¹]]`` in matrix
     products. A sweep is n² elementwise work, cheap as a loop's few fused operations while the
-    matrix is small; under ``vmap`` the size switch (``_sim._solve``) and the predict-correct
+    matrix is small; under ``vmap`` the size switch (``jsnap._core.step._solve``) and the predict-correct
     pass run the whole buffer's problem in every step, and 192 sweeps of the default 64 slots'
     192 x 192 matrix made batched ADMM rollouts 4.4x slower than with the blocks (31 against 137
     scene-steps/s at batch 1; benchmarks/throughput.py --admm). Blocks all the way down to

@@ -1,6 +1,6 @@
 """Implicit differentiation of the contact solve (the cone problem's solution as a function).
 
-The contact solvers (``_contact.solve_apgd`` / ``solve_pgs``) are bounded scans of hundreds of
+The contact solvers (``jsnap._core.contact.algorithms``) are bounded scans of hundreds of
 projected-gradient iterations. Differentiating them unrolled stores every iterate and gives the
 derivative of the *iteration*, not of the solution. Here the solution ``gamma*`` of
 
