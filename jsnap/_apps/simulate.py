@@ -201,7 +201,8 @@ def simulate(args) -> int:
     base = np.asarray(res.base_force)
     guide = design_guide_force(scene)
     csv = write_forces_csv(res, out / "forces.csv")
-    title = f"jsnap: {Path(scene.source).name}, {model.method} {model.element}, {model.n_dof} dof, dt = {model.dt * 1e3:g} ms"
+    name = Path(scene.source).name
+    title = f"jsnap: {name}, {model.method} {model.element}, {model.n_dof} dof, dt = {model.dt * 1e3:g} ms"
     png = plot_forces(res, out, guide, title)
     pvd = write_series(model, res, out)
     warnings = []
@@ -252,11 +253,12 @@ def simulate(args) -> int:
         for w in warnings:
             print(f"jsnap: warning: {w}", file=sys.stderr)
         if summary["peak_insertion_force_N"] is not None:
+            peak, at = summary["peak_insertion_force_N"], summary["travel_at_peak_mm"]
+            rate, real = summary["steps_per_second"], summary["real_time_factor"]
             print(
                 f"jsnap: {F.size} steps ({model.method} model, {model.n_dof} dof), peak insertion force "
-                f"{summary['peak_insertion_force_N']:.3f} N at {summary['travel_at_peak_mm']:.3f} mm (design guide "
-                f"{guide:.3f} N); {summary['steps_per_second']:.0f} steps/s ({summary['real_time_factor']:.1f}x real "
-                f"time); build {t_build:.1f} s, compile {t_compile:.1f} s; wrote {out}/"
+                f"{peak:.3f} N at {at:.3f} mm (design guide {guide:.3f} N); {rate:.0f} steps/s "
+                f"({real:.1f}x real time); build {t_build:.1f} s, compile {t_compile:.1f} s; wrote {out}/"
             )
     if status != "ok":
         print(f"jsnap: error: {status}", file=sys.stderr)

@@ -120,7 +120,8 @@ def _check_controls(controls, batched: bool = False):
     if controls.ndim != want or controls.shape[-1] != 3 or controls.shape[-2] < 1:
         shape = "(B, steps, 3)" if batched else "(steps, 3)"
         raise ValueError(
-            f"controls must be {shape} desired rigid-part centres, mm, with steps >= 1; got shape {controls.shape}"
+            f"controls must be {shape} desired rigid-part centres, mm, with steps >= 1; "
+            f"got shape {controls.shape}"
         )
     if isinstance(controls, np.ndarray):
         bad = ~np.isfinite(controls).all(axis=-1)

@@ -344,7 +344,8 @@ class Scene:
                 set_here = given is None or f"{section}.{key}" in given
                 if spec is None or (spec.internal and set_here and not internal):
                     raise SceneError(
-                        f"unknown key {section}.{key} = {supplied[key]!r}; [{section}] takes {', '.join(visible)}"
+                        f"unknown key {section}.{key} = {supplied[key]!r}; "
+                        f"[{section}] takes {', '.join(visible)}"
                     )
             values = {}
             for key, spec in keys.items():
@@ -435,8 +436,9 @@ def _check_consistency(scene: Scene) -> None:
     name, thinnest = min(features.items(), key=lambda kv: kv[1])
     if s["mesh_size"] > _COARSEST * thinnest:
         raise SceneError(
-            f"solver.mesh_size = {s['mesh_size']!r}: elements more than {_COARSEST:g} times connector.{name} = "
-            f"{thinnest:g} mm, the thinnest feature, leave it unresolved; use solver.mesh_size <= {thinnest:g} mm"
+            f"solver.mesh_size = {s['mesh_size']!r}: elements more than {_COARSEST:g} times connector.{name} "
+            f"= {thinnest:g} mm, the thinnest feature, leave it unresolved; use solver.mesh_size <= "
+            f"{thinnest:g} mm"
         )
     if s["mesh_size"] > thinnest:
         warnings.warn(
