@@ -24,6 +24,19 @@ os.environ.setdefault("JSNAP_XLA_CACHE", "0")
 ARM = dict(L=10.0, h=1.2, b=4.0)
 
 
+@pytest.fixture(autouse=True)
+def _keep_xla_flags():
+    """The command line opts its process in to XLA's small-loop option (``XLA_FLAGS``, read by
+    JAX once per process); tests that call it in this process must not leave it set for the
+    subprocesses of later tests."""
+    saved = os.environ.get("XLA_FLAGS")
+    yield
+    if saved is None:
+        os.environ.pop("XLA_FLAGS", None)
+    else:
+        os.environ["XLA_FLAGS"] = saved
+
+
 @pytest.fixture
 def x64():
     """JAX's 64-bit types for the test's duration."""

@@ -1,5 +1,6 @@
-"""The build cache's cross-process behaviour (jsnap._build.cache): processes asking for the same file
-at once build it once; a corrupt file is rebuilt, once."""
+"""The build cache (jsnap._build.cache): one artefact format whose files say what they are (kind
+and key); a corrupt or foreign file is warned about and rebuilt, once; processes asking for the
+same file at once build it once; JAX's compilation cache and `jsnap cache`."""
 
 import json
 import os
@@ -8,9 +9,79 @@ import sys
 import textwrap
 import warnings
 
+import numpy as np
 import pytest
 
 from jsnap._build import cache as _cache
+
+
+def test_cached_artefact_is_made_once_and_says_what_it_is(tmp_path, monkeypatch):
+    monkeypatch.setenv("JSNAP_CACHE", str(tmp_path))
+    key = _cache.KeyHash("modal").settings({"a": 1}).arrays(np.arange(3.0)).hexdigest()
+    # Everything it depends on is in the key, the artefact's kind too.
+    assert key != _cache.KeyHash("modal").settings({"a": 2}).arrays(np.arange(3.0)).hexdigest()
+    assert key != _cache.KeyHash("modal").settings({"a": 1}).arrays(np.arange(3)).hexdigest()
+    assert key != _cache.KeyHash("reduced").settings({"a": 1}).arrays(np.arange(3.0)).hexdigest()
+    makes = []
+
+    def make():
+        makes.append(1)
+        return {"w": np.ones(4)}, {"note": "test"}
+
+    arrays, meta = _cache.cached("modal", key, make, what="a test artefact")
+    path = _cache.artefact_path("modal", key)
+    assert path.parent == tmp_path / "modal" and path.is_file()
+    assert (meta["path"], meta["cached"], meta["shipped"], len(makes)) == (str(path), False, False, 1)
+    arrays, meta = _cache.cached("modal", key, make, what="a test artefact")
+    assert meta["cached"] and len(makes) == 1 and np.array_equal(arrays["w"], np.ones(4))
+    _, stored = _cache.load_artefact(path, "modal", key)
+    assert (stored["kind"], stored["key"], stored["note"]) == ("modal", key, "test")
+    arrays, meta = _cache.cached("modal", key, make, what="a test artefact", fresh=True)
+    assert not meta["cached"] and len(makes) == 2
+    with pytest.raises(ValueError, match="unknown artefact kind 'xla'"):
+        _cache.artefact_path("xla", key)
+
+
+def test_foreign_or_corrupt_artefact_is_warned_about_and_made_again(tmp_path, monkeypatch):
+    monkeypatch.setenv("JSNAP_CACHE", str(tmp_path))
+    key = _cache.KeyHash("modal").settings({"a": 1}).hexdigest()
+    other = _cache.KeyHash("modal").settings({"a": 2}).hexdigest()
+    path = _cache.artefact_path("modal", key)
+
+    def make():
+        return {"w": np.ones(4)}, {}
+
+    def check(arrays, meta):
+        if arrays["w"].shape != (4,):
+            raise _cache.ArtefactError(f"w has shape {arrays['w'].shape}, not (4,)")
+
+    def again(why):
+        with pytest.warns(UserWarning) as caught:
+            arrays, meta = _cache.cached("modal", key, make, what="a test artefact", check=check)
+        assert [str(w.message) for w in caught if "made again" in str(w.message)] == [
+            f"{why}; not using it: a test artefact is made again"
+        ]
+        assert not meta["cached"] and np.array_equal(arrays["w"], np.ones(4))
+        return meta
+
+    _cache.save_artefact(path, "reduced", key, {}, {"w": np.ones(4)})
+    again(f"{path}: a 'reduced' artefact, not 'modal'")
+    _cache.save_artefact(path, "modal", other, {}, {"w": np.ones(4)})
+    again(f"{path}: made for something else (key {other[:12]}…, expected {key[:12]}…)")
+    _cache.save_artefact(path, "modal", key, {}, {"w": np.ones(5)})
+    again("w has shape (5,), not (4,)")
+    path.write_bytes(path.read_bytes()[:200])
+    with pytest.raises(_cache.ArtefactError, match="unreadable or corrupt file"):
+        _cache.load_artefact(path, "modal")
+    with pytest.warns(UserWarning, match="unreadable or corrupt file .*; not using it"):
+        _cache.cached("modal", key, make, what="a test artefact")
+    _cache.load_artefact(path, "modal", key)  # made again: valid
+    # A file the package ships for a key is read when the cache has none (and not copied).
+    shipped = _cache.save_artefact(tmp_path / "package" / "s.npz", "modal", other, {}, {"w": np.full(4, 7.0)})
+    arrays, meta = _cache.cached("modal", other, make, what="a test artefact", shipped=shipped)
+    assert meta["shipped"] and meta["cached"] and arrays["w"][0] == 7.0
+    assert not _cache.artefact_path("modal", other).exists()
+
 
 # A worker: waits for the go file, then load_or_make on the shared path; its make sleeps (so the
 # others arrive while it builds) and logs each build. Prints what it got.

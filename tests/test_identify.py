@@ -1,6 +1,7 @@
 """Differentiable rollouts and parameter identification (jsnap.identify, jsnap fit).
 
-Coarse sockets keep each rollout short: P1 1.5 mm (288 dofs) for the gradient check and the CLI,
+Coarse full-model sockets (``solver.method = "full"``; the default is the reduced model) keep
+each rollout short: P1 1.5 mm (288 dofs) for the gradient check and the CLI,
 P2 1.5 mm (1554 dofs) for the identification (a coarse P1 arm locks and its force history is too
 rough to fit to 0.1 %). The identify and unit-check tests share one model, so that their
 gradient compiles once (every build compiles anew).
@@ -17,6 +18,7 @@ import jsnap
 from jsnap._apps.cli import main as cli_main
 
 COARSE = {
+    "solver.method": "full",
     "solver.element": "P1",
     "solver.mesh_size": 1.5,
     "solver.dtype": "float64",
@@ -39,10 +41,11 @@ def _write_csv(path, t, F, header="t_s,insertion_force_N"):
     return path
 
 
-def test_gradient_through_contact_matches_central_differences():
+def test_gradient_through_contact_matches_central_differences(x64):
     """d(Σ F²) with respect to E, μ, α, β and the plug's path, through a rollout with contact,
     float64, converged contact solves, against central differences (relative steps where the
-    quotient is flat: the contact set is discrete, docs/differentiation.md)."""
+    quotient is flat: the contact set is discrete, docs/differentiation.md). JAX transformations
+    of jsnap calls run in 64-bit mode (the ``x64`` fixture; see the next test)."""
     scene = jsnap.load_scene().replace({**COARSE, "contact.iterations": 20000, "contact.tolerance": 1e-11})
     model = jsnap.build(scene)
     base = model.params.replace(alpha=20.0, beta=1e-5)
@@ -74,6 +77,26 @@ def test_gradient_through_contact_matches_central_differences():
     ad = float(jnp.sum(grad_c * e))
     assert fd < 0
     assert abs(ad / fd - 1) < 1e-3, (ad, fd)
+
+
+def test_a_transformation_outside_64_bit_mode_is_refused_with_advice():
+    """JAX compiles a transformed program (grad, jit, vmap) after jsnap's call has returned,
+    outside its 64-bit scope: a program in JAX's default 32-bit mode is told to run the
+    transformation inside ``with jax.enable_x64(True):``, and doing so works (for that block
+    only)."""
+    model = jsnap.build(jsnap.load_scene().replace({**COARSE, "solver.dtype": "float32"}))
+    controls = model.trajectory()[1:15]  # on the ramp
+
+    def loss(E):
+        return jnp.sum(jsnap.rollout(model, model.params.replace(E=E), controls=controls).insertion_force ** 2)
+
+    assert not jax.config.jax_enable_x64
+    with pytest.raises(RuntimeError, match=r"jsnap\.rollout is being traced by a JAX transformation"):
+        jax.grad(loss)(jnp.asarray(2200.0))
+    with jax.enable_x64(True):
+        g = jax.grad(loss)(jnp.asarray(2200.0))
+    assert not jax.config.jax_enable_x64
+    assert np.isfinite(float(g)) and float(g) > 0  # a stiffer hook resists more
 
 
 def test_identify_recovers_E_from_noise_free_data(coarse, tmp_path):
@@ -155,7 +178,10 @@ def test_cli_fit_on_simulate_output(tmp_path, capsys):
     error naming the problem (exit code 2)."""
     text = open(jsnap.load_scene().source).read()
     body = text.split("[motion]")[0]  # the default scene's connector, material, contact, plug
-    tiny = "[motion]\nspeed = 40.0\n[solver]\nelement = 'P1'\nmesh_size = 1.5\ndtype = 'float64'\n"
+    tiny = (
+        "[motion]\nspeed = 40.0\n"
+        "[solver]\nmethod = 'full'\nelement = 'P1'\nmesh_size = 1.5\ndtype = 'float64'\n"
+    )
     truth = tmp_path / "truth.toml"
     truth.write_text(body + tiny)
     assert cli_main(["simulate", str(truth), "--out", str(tmp_path / "sim"), "--json"]) == 0

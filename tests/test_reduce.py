@@ -1,10 +1,10 @@
-"""Segmentation and passive balanced reduction (jsnap/_reduce.py, docs/reduction.md).
+"""Segmentation and passive balanced reduction (jsnap/_build/reduce.py, docs/reduction.md).
 
-Coarse P2 meshes (2.0 mm, 780 free dofs) and a light contact configuration keep these fast; each
-model is built once per module and reduced models are cached in a temporary directory.
+Coarse P2 meshes (2.0 mm, 780 free dofs; coarser than the 0.8 mm undercut: a SceneWarning) and a
+light contact configuration keep these fast; each model is built once per module and reduced
+models are cached in a temporary directory. Tests that run the parts' float64 kernels directly
+use the ``x64`` fixture.
 """
-
-import dataclasses
 
 import equinox as eqx
 import jax
@@ -15,9 +15,13 @@ import scipy.linalg as sla
 import scipy.sparse.linalg as spla
 
 import jsnap
+from jsnap._build import cache as _cache
 from jsnap._build import reduce as R
-from jsnap._build.fem import lame
-from jsnap._geometry.scene import SceneError
+from jsnap._build.fem import assemble, lame
+from jsnap._build.model import build_model
+from jsnap._core.contact import APGD
+from jsnap._geometry.cantilever import mesh_cantilever
+from jsnap._geometry.scene import SceneError, connector_geometry, with_internal
 
 SMALL = {
     "solver.mesh_size": 2.0,
@@ -30,20 +34,37 @@ SMALL = {
 
 
 @pytest.fixture(scope="module")
-def models(cache):
-    """Full, segmented and reduced models of the same small scene."""
-    scene = jsnap.load_scene().replace(SMALL)
-    return {m: jsnap.build(scene.replace({"solver.method": m})) for m in ("full", "segmented", "reduced")}
+def scene():
+    return jsnap.load_scene().replace(SMALL)
 
 
-def _full_compliance(full, points):
+@pytest.fixture(scope="module")
+def built(cache, scene):
+    """Full, segmented and reduced models of the same small scene, with their build reports."""
+    return {m: build_model(scene.replace({"solver.method": m})) for m in ("full", "segmented", "reduced")}
+
+
+@pytest.fixture(scope="module")
+def models(built):
+    return {m: model for m, (model, _) in built.items()}
+
+
+@pytest.fixture(scope="module")
+def asm(scene, models):
+    """The full assembly the models were built from (the build keeps none: assembled again)."""
+    a = assemble(mesh_cantilever(connector_geometry(scene), scene["solver"]["mesh_size"]), "P2")
+    assert a.free.size == models["full"].full_dof
+    assert np.array_equal(a.nodes, np.asarray(models["full"].mesh.nodes))
+    return a
+
+
+def _full_compliance(asm, full, points):
     """(3p, 3p) static compliance J K^-1 J' of the full model at candidate points, mm/N."""
-    asm = full.host.assembly
     p = full.params
     lam, mu = lame(float(p.E), float(p.nu))
     f = asm.free
     K = (lam * asm.K_lam + mu * asm.K_mu)[f][:, f].tocsc()
-    s = full.socket
+    s = full.part
     J = np.zeros((3 * len(points), f.size))
     nodes, w = np.asarray(s.sample_nodes)[points], np.asarray(s.sample_weights)[points]
     for i in range(len(points)):
@@ -55,7 +76,7 @@ def _full_compliance(full, points):
 
 def _socket_compliance(model, points, kc=None):
     """The same for a segmented or reduced socket (interface springs included)."""
-    s = model.socket
+    s = model.part
     p = model.params
     lam, mu = lame(float(p.E), float(p.nu))
     kc = float(s.coupling[0]) if kc is None else kc
@@ -71,7 +92,7 @@ def _socket_compliance(model, points, kc=None):
 
 def _normals(model, points):
     """(p, 3) outward normals of the candidate points' own side (from the rest stencil)."""
-    s = np.asarray(model.sample_stencil)[points]
+    s = np.asarray(model.samples.stencil)[points]
     n = np.cross(s[:, 3] - s[:, 2], s[:, 1] - s[:, 0])
     return n / np.linalg.norm(n, axis=1, keepdims=True)
 
@@ -81,10 +102,9 @@ def _normal_compliance(C, normals):
     return np.einsum("pd,pdqe,qe->pq", normals, C.reshape(p, 3, p, 3), normals).diagonal()
 
 
-def _seeds(model):
+def _seeds(asm, model):
     """Boundary faces of the candidate points (as build finds them)."""
-    asm = model.host.assembly
-    s = model.socket
+    s = model.part
     nodes = (asm.free[0::3] // 3)[np.asarray(s.sample_nodes)]
     contact = np.unique(nodes[np.asarray(s.sample_weights) != 0])
     faces = asm.mesh.boundary_faces()
@@ -92,10 +112,9 @@ def _seeds(model):
 
 
 @pytest.mark.parametrize("n_rest", [1, 2])
-def test_segments_partition_the_mesh_and_sum_to_the_full_blocks(models, n_rest):
+def test_segments_partition_the_mesh_and_sum_to_the_full_blocks(models, asm, n_rest):
     full = models["full"]
-    asm = full.host.assembly
-    seeds = _seeds(full)
+    seeds = _seeds(asm, full)
     seg = R.segment(asm, seeds, 1.0, n_rest)
     assert seg.n_segments == n_rest + 1
     assert set(np.unique(seg.element_segment)) == set(range(n_rest + 1))
@@ -137,11 +156,11 @@ def test_position_gramians_solve_the_lyapunov_equations():
     assert hsv[0] == pytest.approx(np.sqrt(1 + 4 * zeta**2) / (4 * zeta * w[0] ** 2), rel=1e-9)
 
 
-def test_reduced_energy_conserved_without_damping_or_input(models):
+def test_reduced_energy_conserved_without_damping_or_input(models, x64):
     """D = 0, b_c = 0, no contact: PMI on the reduced model conserves the energy to round-off
     (the interface springs are 1e6 N/mm, ~1e4 times the arm's stiffness)."""
     red = models["reduced"]
-    s = eqx.tree_at(lambda s: s.coupling, red.socket, red.socket.coupling.at[1].set(0.0))
+    s = eqx.tree_at(lambda s: s.coupling, red.part, red.part.coupling.at[1].set(0.0))
     op = s.prepare(red.params.material, red.dt)
     J = jnp.einsum("k,kdr->dr", s.sample_weights[0], s.node_rows[s.sample_nodes[0]])
     K = op.K_el + op.kc * s.coupling_rows.T @ s.coupling_rows
@@ -158,9 +177,9 @@ def test_reduced_energy_conserved_without_damping_or_input(models):
     assert float(jnp.max(jnp.abs(e - e0)) / e0) < 1e-8
 
 
-def test_reduced_damping_only_removes_energy(models):
+def test_reduced_damping_only_removes_energy(models, x64):
     red = models["reduced"]
-    s = red.socket
+    s = red.part
     op = s.prepare(red.params.replace(alpha=30.0, beta=2e-6).material, red.dt)
     J = jnp.einsum("k,kdr->dr", s.sample_weights[0], s.node_rows[s.sample_nodes[0]])
     x0 = jnp.linalg.solve(op.K_el + op.kc * s.coupling_rows.T @ s.coupling_rows, J.T @ jnp.ones(3))
@@ -177,14 +196,14 @@ def test_reduced_damping_only_removes_energy(models):
     assert e[-1] < 0.5 * e[0]
 
 
-def test_static_normal_compliance_at_the_contact_points(models):
+def test_static_normal_compliance_at_the_contact_points(models, asm, scene):
     """The reduced model keeps the normal compliance at every candidate point to the tolerance
     (1e-2 by default, plus the interface springs' 1/k_c); the segmented one to ~1/k_c."""
     full = models["full"]
     pts = np.arange(full.n_samples)
     n = _normals(full, pts)
-    c_full = _normal_compliance(_full_compliance(full, pts), n)
-    tol = full.host.scene["solver"]["hsv_tolerance"]
+    c_full = _normal_compliance(_full_compliance(asm, full, pts), n)
+    tol = scene["solver"]["hsv_tolerance"]
     c = {m: _normal_compliance(_socket_compliance(models[m], pts), n) for m in ("segmented", "reduced")}
     assert np.max(np.abs(c["segmented"] / c_full - 1)) < 1e-3
     assert np.max(np.abs(c["reduced"] / c_full - 1)) < 1.5 * tol
@@ -192,10 +211,10 @@ def test_static_normal_compliance_at_the_contact_points(models):
     assert np.all(c["reduced"] <= c["segmented"] * (1 + 1e-9))
 
 
-def test_segmented_tends_to_the_full_model_as_the_coupling_stiffens(models):
+def test_segmented_tends_to_the_full_model_as_the_coupling_stiffens(models, asm):
     full, seg = models["full"], models["segmented"]
     pts = np.arange(0, full.n_samples, 7)
-    C0 = _full_compliance(full, pts)
+    C0 = _full_compliance(asm, full, pts)
     errs = [
         np.linalg.norm(_socket_compliance(seg, pts, kc) - C0) / np.linalg.norm(C0) for kc in (1e2, 1e4, 1e6)
     ]
@@ -230,22 +249,21 @@ def test_reduced_rollout_is_passive_and_its_base_wrench_balances_contact(rollout
     assert np.abs(base + contact).max() < 2e-2 * np.abs(contact).max()
 
 
-def test_free_displacement_reconstructs_the_static_deflection(models):
+def test_free_displacement_reconstructs_the_static_deflection(models, asm, x64):
     """A unit normal force at a hook point: the reduced model's reconstructed displacement field
     matches the full model's static one."""
     full, red = models["full"], models["reduced"]
-    p = int(np.argmax(np.asarray(full.sample_rest)[:, 2]))  # the hook's top
+    p = int(np.argmax(np.asarray(full.samples.rest)[:, 2]))  # the hook's top
     n = _normals(full, [p])[0]
-    asm = full.host.assembly
     lam, mu = lame(float(full.params.E), float(full.params.nu))
     f = asm.free
     K = (lam * asm.K_lam + mu * asm.K_mu)[f][:, f].tocsc()
-    s = full.socket
+    s = full.part
     load = np.zeros(f.size)
     for k in range(s.sample_nodes.shape[1]):
         load[3 * int(s.sample_nodes[p, k]) + np.arange(3)] += float(s.sample_weights[p, k]) * n
     u = spla.splu(K).solve(load)
-    r = red.socket
+    r = red.part
     Kr = (
         lam * np.asarray(r.kl)
         + mu * np.asarray(r.km)
@@ -257,13 +275,16 @@ def test_free_displacement_reconstructs_the_static_deflection(models):
     assert np.linalg.norm(u_r - u) < 0.02 * np.linalg.norm(u)
 
 
-def test_gradient_wrt_youngs_modulus_through_a_reduced_rollout(models):
+def test_gradient_wrt_youngs_modulus_through_a_reduced_rollout(models, x64):
     """V is held fixed: E enters only through prepare (lambda, mu times stored blocks), so the
-    gradient of a contact rollout is exact; checked against central differences."""
+    gradient of a contact rollout is exact; checked against central differences (JAX
+    transformations of jsnap calls run in 64-bit mode: the ``x64`` fixture)."""
     # A short, cheap rollout; the gradient differentiates the solver's own 60 iterations
-    # ("unrolled"): exact for what the rollout computes (the implicit mode differentiates the
-    # converged solution, which 60 iterations only approach).
-    red = dataclasses.replace(models["reduced"], iterations=60, contact_gradient="unrolled")
+    # ("unrolled", APGD(implicit=False)): exact for what the rollout computes (the implicit mode
+    # differentiates the converged solution, which 60 iterations only approach).
+    red = models["reduced"]
+    solver = APGD(max_iters=60, tol=red.contact.solver.tol, implicit=False)
+    red = eqx.tree_at(lambda m: m.contact.solver, red, solver)
     controls = red.trajectory()[1:13]  # on the ramp, in contact from the first step
 
     @jax.jit
@@ -278,57 +299,67 @@ def test_gradient_wrt_youngs_modulus_through_a_reduced_rollout(models):
     assert float(g) == pytest.approx(fd, rel=1e-4)
 
 
-def test_reduced_model_is_cached_and_a_corrupt_file_is_rebuilt(models, cache):
-    red = models["reduced"]
-    info = red.host.reduction
+def test_reduced_model_is_cached_and_a_corrupt_file_is_rebuilt(built, scene, cache):
+    red, report = built["reduced"]
+    info = report.reduction
     path = info["path"]
-    scene = red.host.scene
-    again = jsnap.build(scene)
-    assert again.host.reduction["cached"] and again.host.reduction["path"] == path
-    assert np.array_equal(np.asarray(again.socket.kl), np.asarray(red.socket.kl))
-    _arrays, meta = R.load(path, key=info["key"])
-    assert meta["orders"] == list(red.socket.orders)
+    red_scene = scene.replace({"solver.method": "reduced"})
+    again, again_report = build_model(red_scene)
+    assert again_report.reduction["cached"] and again_report.reduction["path"] == path
+    assert np.array_equal(np.asarray(again.part.kl), np.asarray(red.part.kl))
+    _arrays, meta = _cache.load_artefact(path, "reduced", key=info["key"])
+    assert meta["orders"] == list(red.part.orders)
+    assert (meta["kind"], meta["key"]) == ("reduced", info["key"])  # the file says what it is
     # Corrupt the file: it is reported and rebuilt, never used.
     raw = bytearray(open(path, "rb").read())
     raw[len(raw) // 4 : 3 * len(raw) // 4] = b"\0" * (3 * len(raw) // 4 - len(raw) // 4)  # array data
     open(path, "wb").write(bytes(raw))
-    with pytest.raises(R.ReducedModelFileError, match=r"corrupt|unreadable|checksum"):
-        R.load(path)
-    with pytest.warns(UserWarning, match="rebuilding"):
-        rebuilt = jsnap.build(scene)
-    assert not rebuilt.host.reduction["cached"]
+    with pytest.raises(_cache.ArtefactError, match=r"corrupt|unreadable|checksum"):
+        _cache.load_artefact(path, "reduced")
+    with pytest.warns(UserWarning, match="not using it: the reduced model is made again"):
+        rebuilt, rebuilt_report = build_model(red_scene)
+    assert not rebuilt_report.reduction["cached"]
     # The rebuilt basis may differ by a change of coordinates (ARPACK's start vector), so the
     # check is on invariants: the reduced model's generalised eigenvalues.
     import scipy.linalg
 
-    def spectrum(sock):
-        k = np.asarray(sock.kl) + np.asarray(sock.km)
-        return scipy.linalg.eigh(k, np.asarray(sock.m1), eigvals_only=True)
+    def spectrum(part):
+        k = np.asarray(part.kl) + np.asarray(part.km)
+        return scipy.linalg.eigh(k, np.asarray(part.m1), eigvals_only=True)
 
-    assert rebuilt.socket.orders == red.socket.orders
-    ref = spectrum(red.socket)  # (segments float free without their coupling: zero modes)
-    np.testing.assert_allclose(spectrum(rebuilt.socket), ref, rtol=1e-6, atol=1e-9 * np.abs(ref).max())
-    R.load(path, key=info["key"])  # valid again
+    assert rebuilt.part.orders == red.part.orders
+    ref = spectrum(red.part)  # (segments float free without their coupling: zero modes)
+    np.testing.assert_allclose(spectrum(rebuilt.part), ref, rtol=1e-6, atol=1e-9 * np.abs(ref).max())
+    _cache.load_artefact(path, "reduced", key=info["key"])  # valid again
 
 
-def test_reduced_file_checks(models, tmp_path, monkeypatch):
-    info = models["reduced"].host.reduction
-    arrays, meta = R.load(info["path"])
-    good = R.save(arrays, meta, tmp_path / "m.npz")
-    with pytest.raises(R.ReducedModelFileError, match="built for another scene"):
-        R.load(good, key="0" * 64)
+def test_reduced_file_checks(built, tmp_path, monkeypatch):
+    """A reduced model's file is refused (ArtefactError) when it was made for another key, is
+    of another kind, was altered, is of another format version or is not a file of ours; its
+    arrays must be of the order its metadata states."""
+    info = built["reduced"][1].reduction
+    key = info["key"]
+    arrays, meta = _cache.load_artefact(info["path"], "reduced")
+    good = _cache.save_artefact(tmp_path / "m.npz", "reduced", key, meta, arrays)
+    _cache.load_artefact(good, "reduced", key=key)
+    with pytest.raises(_cache.ArtefactError, match="made for something else"):
+        _cache.load_artefact(good, "reduced", key="0" * 64)
+    with pytest.raises(_cache.ArtefactError, match="a 'reduced' artefact, not 'modal'"):
+        _cache.load_artefact(good, "modal", key=key)
+    with pytest.raises(_cache.ArtefactError, match="not of order"):
+        R._check_arrays(dict(arrays, kl=arrays["kl"][:-1, :-1]), meta)
     tampered = dict(arrays, kl=arrays["kl"] * 1.01)
     np.savez(tmp_path / "t.npz", **{k: v for k, v in np.load(good).items() if k not in tampered}, **tampered)
-    with pytest.raises(R.ReducedModelFileError, match="checksum mismatch"):
-        R.load(tmp_path / "t.npz")
-    monkeypatch.setattr(R, "FORMAT_VERSION", R.FORMAT_VERSION + 1)
-    with pytest.raises(R.ReducedModelFileError, match="format version"):
-        R.load(good)
+    with pytest.raises(_cache.ArtefactError, match="checksum mismatch"):
+        _cache.load_artefact(tmp_path / "t.npz", "reduced")
+    monkeypatch.setattr(_cache, "FORMAT_VERSION", _cache.FORMAT_VERSION + 1)
+    with pytest.raises(_cache.ArtefactError, match="format version"):
+        _cache.load_artefact(good, "reduced")
     (tmp_path / "x.npz").write_bytes(b"not a zip file")
-    with pytest.raises(R.ReducedModelFileError, match="unreadable"):
-        R.load(tmp_path / "x.npz")
+    with pytest.raises(_cache.ArtefactError, match="unreadable"):
+        _cache.load_artefact(tmp_path / "x.npz", "reduced")
     with pytest.raises(FileNotFoundError):
-        R.load(tmp_path / "missing.npz")
+        _cache.load_artefact(tmp_path / "missing.npz", "reduced")
 
 
 @pytest.mark.parametrize(
@@ -336,7 +367,7 @@ def test_reduced_file_checks(models, tmp_path, monkeypatch):
     [
         ({"solver.hsv_tolerance": 0.0}, r"solver\.hsv_tolerance = 0\.0: must be in \(0, 1\)"),
         ({"solver.hsv_tolerance": 1.5}, r"solver\.hsv_tolerance = 1\.5"),
-        ({"solver.subspace_modes": 0}, r"solver\.subspace_modes = 0: must be > 0"),
+        ({"solver.subspace_modes": 0}, r"solver\.subspace_modes = 0: must be >= 1"),
         ({"solver.segments": 0}, r"solver\.segments = 0"),
         ({"solver.segment_margin": -1.0}, r"solver\.segment_margin = -1\.0: must be >= 0"),
         ({"solver.interface_stiffness": 0.0}, r"solver\.interface_stiffness = 0\.0: must be > 0"),
@@ -345,12 +376,13 @@ def test_reduced_file_checks(models, tmp_path, monkeypatch):
     ],
 )
 def test_bad_reduction_keys_name_the_key(change, match):
+    # solver.hsv_tolerance is a scene key; the others are internal (tests and benchmarks).
     with pytest.raises(SceneError, match=match):
-        jsnap.load_scene().replace(change)
+        with_internal(jsnap.load_scene(), change)
 
 
-def test_a_margin_that_swallows_the_socket_is_an_error(cache):
-    scene = jsnap.load_scene().replace({**SMALL, "solver.method": "segmented", "solver.segment_margin": 50.0})
+def test_a_margin_that_swallows_the_socket_is_an_error(scene, cache):
+    scene = with_internal(scene.replace({"solver.method": "segmented"}), {"solver.segment_margin": 50.0})
     with pytest.raises(
         ValueError, match=r"solver\.segment_margin = 50\.0: the contact segment holds the whole"
     ):

@@ -1,7 +1,8 @@
-"""Whole-scene checks: passivity, force balance, the curve's phases, impedance control, bad input.
+"""Whole-scene checks of the full model: passivity, force balance, the curve's phases,
+impedance control, bad input.
 
-Coarse P2 meshes (1.2 mm) and a faster plug keep these to a few rollouts; every model is built
-and rolled out once per module.
+Coarse P2 meshes (1.2 mm, coarser than the 0.8 mm undercut: a SceneWarning) and a faster plug
+keep these to a few rollouts; every model is built and rolled out once per module.
 """
 
 import json
@@ -13,15 +14,16 @@ import pytest
 
 import jsnap
 from jsnap._apps.cli import main as cli_main
-from jsnap._geometry.scene import SceneError
+from jsnap._geometry.scene import SceneError, connector_geometry, motion_stroke, with_internal
 
-COARSE = {"solver.mesh_size": 1.2, "solver.dtype": "float64", "motion.speed": 20.0}
+COARSE = {"solver.method": "full", "solver.mesh_size": 1.2, "solver.dtype": "float64", "motion.speed": 20.0}
 # CalculiX, linear geometry, frictionless, default hook (jsnap/data/calculix-cantilever).
 CALCULIX_PEAK_N = 2.486
 
 
-def _run(changes, **kw):
-    scene = jsnap.load_scene().replace({**COARSE, **changes})
+def _run(changes, internal=None, **kw):
+    """Build and roll out the coarse scene with ``changes`` (and internal keys or choices)."""
+    scene = with_internal(jsnap.load_scene().replace({**COARSE, **changes}), internal or {})
     model = jsnap.build(scene)
     return scene, model, jsnap.rollout(model, **kw)
 
@@ -73,9 +75,10 @@ def test_insertion_peak_against_calculix(default_coarse):
 def test_retention_force_on_withdrawal(cycle):
     """Withdrawal pulls the hook out over its 45° return face (a negative, retention force), and
     the plug comes free: no force at the end."""
-    _, model, res = cycle
+    scene, model, res = cycle
     F = np.asarray(res.insertion_force)
-    n_in = round(model.stroke / model.speed / model.dt)
+    stroke = motion_stroke(scene, connector_geometry(scene))
+    n_in = round(stroke / scene["motion"]["speed"] / model.dt)
     assert F[n_in:].min() < -0.5
     assert np.abs(F[-3:]).max() < 1e-3  # back at the start, clear of the hook
 
@@ -92,6 +95,7 @@ def test_curve_phases(default_coarse):
     tail = travel > travel[-1] - 0.1
     assert np.abs(F[tail]).max() < 0.02 * F[k]  # latched: no force left
     assert int(np.asarray(res.overflow).max()) == 0
+    assert bool(res.ok) and res.status() == "ok"  # no error flag in any step
 
 
 @pytest.fixture(scope="module")
@@ -106,8 +110,8 @@ def test_admm_converges_where_apgd_hits_its_cap(default_coarse, tight_coarse):
     APGD at the scene's settings stops at its cap in 41 of the 117 steps (measured; RMSE 0.30 %
     of the peak from the tight curve), ADMM in none (0.055 %); the two tight curves agree to
     5.5e-8 of the peak."""
-    _, model, res = _run({"contact.solver": "admm"})
-    assert int(np.asarray(res.iterations).max()) < model.iterations
+    _, model, res = _run({}, internal={"contact.solver": "admm"})
+    assert int(np.asarray(res.iterations).max()) < model.contact.solver.max_iters
     assert int(np.asarray(tight_coarse.iterations).max()) < 20000
     F, ref = np.asarray(res.insertion_force), np.asarray(tight_coarse.insertion_force)
     assert np.sqrt(np.mean((F - ref) ** 2)) <= 2e-3 * ref.max()
@@ -124,7 +128,7 @@ def test_spg_takes_fewer_iterations_than_apgd(default_coarse, tight_coarse):
     ε. Hence the bound here is the spread's, not APGD's accuracy (docs/contact.md)."""
     _, model, res = _run({"contact.solver": "spg"})
     apgd = default_coarse[2]
-    capped = [int(np.sum(np.asarray(r.iterations) >= model.iterations)) for r in (res, apgd)]
+    capped = [int(np.sum(np.asarray(r.iterations) >= model.contact.solver.max_iters)) for r in (res, apgd)]
     assert capped[0] <= capped[1] // 4
     assert np.mean(np.asarray(res.iterations)) < 0.5 * np.mean(np.asarray(apgd.iterations))
     F, ref = np.asarray(res.insertion_force), np.asarray(tight_coarse.insertion_force)
@@ -192,8 +196,10 @@ def test_bad_rollout_arguments_are_errors(default_coarse):
 
 
 def test_motion_that_never_touches_is_an_error():
+    # 0.01 mm at 0.25 mm/s: 40 steps (a scene whose motion takes fewer than 20 is refused on load).
+    scene = jsnap.load_scene().replace({**COARSE, "motion.stroke": 0.01, "motion.speed": 0.25})
     with pytest.raises(SceneError, match="never touches"):
-        jsnap.build(jsnap.load_scene().replace({**COARSE, "motion.stroke": 0.01}))
+        jsnap.build(scene)
 
 
 def test_small_buffer_overflow_is_reported(default_coarse):
@@ -201,12 +207,25 @@ def test_small_buffer_overflow_is_reported(default_coarse):
     model = jsnap.build(scene.replace({"contact.capacity": 4}))
     res = jsnap.rollout(model, controls=model.trajectory()[1:80])
     assert int(np.asarray(res.overflow).max()) > 0
+    # ... and flagged: the result is not the physics asked for.
+    flagged = (np.asarray(res.flags) & jsnap.Flag.CONTACT_OVERFLOW) != 0
+    assert np.array_equal(flagged, np.asarray(res.overflow) > 0)
+    assert not bool(res.ok)
+    with pytest.raises(jsnap.SimulationError, match=r"raise contact\.capacity"):
+        res.check()
 
 
 def test_cli_simulate_writes_outputs(tmp_path, capsys):
     scene = tmp_path / "s.toml"
     text = open(jsnap.load_scene().source).read()
-    scene.write_text(text.replace("mesh_size = 0.8", "mesh_size = 1.5").replace("speed = 10.0", "speed = 40.0"))
+    for old, new in (
+        ("mesh_size = 0.8", "mesh_size = 1.5"),
+        ("speed = 10.0", "speed = 40.0"),
+        ('"reduced"', '"full"'),
+    ):
+        assert old in text
+        text = text.replace(old, new)
+    scene.write_text(text)
     assert cli_main(["simulate", str(scene), "--out", str(tmp_path / "out"), "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
     for key in ("steps", "dt", "steps_per_second", "peak_insertion_force_N", "peak_base_force_N", "dof"):
@@ -221,54 +240,41 @@ def test_cli_simulate_writes_outputs(tmp_path, capsys):
 @pytest.fixture(scope="module")
 def released():
     """A stiff, light socket (P1, 2 mm, E = 2e4 MPa) that the plug releases: a few steps of its
-    rollout are solved twice (predict-correct)."""
+    rollout are solved twice (predict-correct). Full model, rolled out in float32 (stated: the
+    full model's default is float64 now)."""
     scene = jsnap.load_scene().replace(
-        {"solver.mesh_size": 2.0, "solver.element": "P1", "material.youngs_modulus": 2e4}
+        {
+            "solver.method": "full",
+            "solver.dtype": "float32",
+            "solver.mesh_size": 2.0,
+            "solver.element": "P1",
+            "material.youngs_modulus": 2e4,
+        }
     )
     return jsnap.build(scene)
 
 
-def test_predict_correct_keeps_released_points_out_of_the_plug(released):
+def test_predict_correct_keeps_released_points_out_of_the_plug(released, x64):
     """A stiff, light socket released by the plug springs back through the gap within a step;
     the predict-correct pass solves those steps again with the points it would carry into the
     plug, so that no candidate point ends a step deeper in the plug than the contact margin.
     (Without the second solve this scene ends steps 0.25 mm deep, peak 3.7 kN instead of 0.28.)
+    The check evaluates the float64 model on the float32 rollout's states (the ``x64`` fixture).
     """
-    from jsnap._core.step import _plug_sdf
-
     model = released
     res = jsnap.rollout(model, keep_x=True)
     assert 0 < int(np.asarray(res.corrected).sum()) < 20
-    y = model.sample_rest[None] + jax.vmap(model.socket.sample_disp)(res.x)
-    phi = jax.vmap(lambda yy, p: _plug_sdf(model, yy - p)[0])(y, res.plug)
-    assert float(phi.min()) > -model.margin
+    y = model.samples.rest[None] + jax.vmap(model.part.sample_disp)(res.x)
+    margin = model.contact.margin
+    phi = jax.vmap(lambda yy, p: model.rigid.scene_query(yy - p, margin)[0])(y, res.plug)
+    assert float(phi.min()) > -margin
 
 
-def test_differentiated_or_batched_inputs_are_recognised():
-    """``step``'s rolled predict-correct loop is chosen unless JAX differentiates or batches the inputs."""
-    from jsnap._core.step import _differentiated_or_batched
-
-    seen = []
-
-    def f(x):
-        seen.append(_differentiated_or_batched({"a": x}))
-        return x * 2.0
-
-    x = jnp.ones(2)
-    jax.jvp(f, (x,), (x,))
-    jax.grad(lambda x: f(x).sum())(x)
-    jax.vjp(f, x)
-    jax.vmap(f)(x)
-    assert seen == [True, True, True, True]
-    jax.jit(f)(x)
-    f(x)
-    assert seen[4:] == [False, False]
-
-
-def test_rolled_and_unrolled_predict_correct_agree(released):
-    """The rolled two-pass loop (a plain rollout) and the passes written out (what a
-    differentiated rollout runs: here the primal of a jvp) give the same forces, the corrected
-    steps included: the same equations, compiled apart (float64, to round-off)."""
+def test_jvp_of_a_rollout_has_the_rollout_as_its_primal(released, x64):
+    """A forward-mode derivative of a rollout (what a sensitivity study runs) carries the plain
+    rollout's forces as its primal, the predict-correct steps included: the same equations,
+    compiled apart (float64, to round-off), and a finite tangent. (A JAX transformation of a
+    jsnap call runs in 64-bit mode, the ``x64`` fixture: see jsnap._core.util.x64.)"""
     model = released
     plain = jsnap.rollout(model, dtype="float64")
     assert int(np.asarray(plain.corrected).sum()) > 0
