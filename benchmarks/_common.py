@@ -1,6 +1,13 @@
 """Pieces the benchmark scripts share (not a benchmark itself: `jsnap bench` runs only the
 registered names). Scripts import it as ``from _common import ...`` (their folder is on
-``sys.path`` when run as ``python benchmarks/NAME.py`` and under ``jsnap bench``)."""
+``sys.path`` when run as ``python benchmarks/NAME.py`` and under ``jsnap bench``).
+
+Since the redesign the shipped scene's defaults are the reduced model and a per-method rollout
+dtype (float64 for the full model, float32 for the reduced and segmented ones), and several keys are internal. The benchmarks
+state what they measure instead of leaning on defaults: :data:`FULL` and :data:`FLOAT32` are the
+choices the scene made when the committed results were taken (the full model, float32
+rollouts), and :func:`load_scene` applies changes that may include internal keys.
+"""
 
 from __future__ import annotations
 
@@ -14,20 +21,35 @@ import jax
 import jax.numpy as jnp
 
 import jsnap
-from jsnap._core.step import _cast, init_state, step
+from jsnap._core.util import cast_floats
+from jsnap._geometry.scene import Scene, with_internal
 
+# The deformable part's model and the rollout precision of the shipped scene up to the redesign
+# (its defaults then; now "reduced", and float64 for every method but the reduced one).
+FULL = {"solver.method": "full"}
+FLOAT32 = {"solver.dtype": "float32"}
 # The light contact settings several benchmarks compare against the scene's: candidate lines
 # every 2.0 mm across the width (default 1.0), 24 slots (64), at most 200 solver iterations (500).
 # reduction_speed.py adds the SPG solver and the 1e-4 residual for its speed rows.
 LIGHT = {"contact.width_spacing": 2.0, "contact.capacity": 24, "contact.iterations": 200}
 # A contact solve tight enough to stand for the exact one: ADMM (it converges where APGD stalls
-# on these problems) to the 1e-10 residual, at most 20000 iterations; run it in float64.
+# on these problems) to the 1e-10 residual, at most 20000 iterations; run it in float64. ADMM is
+# an internal choice of contact.solver: apply it with :func:`load_scene` or ``with_internal``.
 TIGHT_ADMM = {"contact.solver": "admm", "contact.iterations": 20000, "contact.tolerance": 1e-10}
+
+
+def load_scene(changes: dict | None = None, scene: Scene | None = None) -> Scene:
+    """``scene`` (default: the shipped default scene) with ``changes``, which may set internal
+    keys and choices (``jsnap._geometry.scene.with_internal``: ADMM and PGS, the modal form,
+    the segmentation's and the contact's internal settings)."""
+    scene = jsnap.load_scene() if scene is None else scene
+    return with_internal(scene, changes or {})
 
 
 def code_version() -> dict:
     """The commit the numbers were taken at, the library files modified in the working tree, and
-    the ``XLA_FLAGS`` the process runs with (jsnap adds its small-loop option, jsnap._apps.xla)."""
+    the ``XLA_FLAGS`` the process runs with (the scripts opt in to XLA's small-loop option with
+    ``jsnap.configure_xla_cpu()``, as the committed results were measured)."""
     here = Path(__file__).resolve().parent
 
     def git(*args):
@@ -44,17 +66,25 @@ def code_version() -> dict:
 
 
 def jitted_step(model, prepared):
-    """``(one, dyn, state0)``: ``one(dyn, state, control) -> next state``, the jitted step called
-    once per step from Python (the interactive case), in the scene's dtype."""
+    """``(one, dyn, state0)``: ``one(dyn, state, control) -> next state``, the jitted
+    ``jsnap.step`` called once per step from Python (the interactive case), in the model's
+    rollout dtype (``model.dtype``); the model and operator are cast once, here.
+
+    Call it in JAX's 64-bit mode (``with jax.enable_x64(True):``, as the scripts that use it run
+    their whole measurement): jsnap enters that mode only while the step is traced, and JAX
+    lowers a program the caller jits in the caller's mode, where the step's 64-bit indices do
+    not lower."""
+    if not jax.config.jax_enable_x64:
+        raise RuntimeError("jitted_step: call it inside `with jax.enable_x64(True):` (see its docstring)")
     dtype = jnp.dtype(model.dtype)
-    dyn, static = eqx.partition((_cast(model, dtype), _cast(prepared, dtype)), eqx.is_array)
+    dyn, static = eqx.partition((cast_floats(model, dtype), cast_floats(prepared, dtype)), eqx.is_array)
 
     @jax.jit
     def one(dyn, state, control):
         m, p = eqx.combine(dyn, static)
-        return step(m, p, state, control)[0]
+        return jsnap.step(m, p, state, control)[0]
 
-    return one, dyn, init_state(model, dtype)
+    return one, dyn, jsnap.init_state(model, dtype)
 
 
 def two_step_compile_seconds(model, prepared) -> float:

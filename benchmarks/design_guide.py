@@ -33,9 +33,16 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse.linalg as spla
+from _common import FULL, load_scene
 
 import jsnap
-from jsnap._apps.cli import design_guide_force
+from jsnap._apps.simulate import design_guide_force
+from jsnap._build.fem import assemble
+from jsnap._geometry.cantilever import mesh_cantilever
+from jsnap._geometry.scene import connector_geometry
+
+# XLA's small-loop option, before the first JAX computation (the committed results had it).
+jsnap.configure_xla_cpu()
 
 OUT = Path(__file__).parent / "results"
 
@@ -71,7 +78,7 @@ def _eb_compliance(geom, z_c, E):
 
 
 def analyse(name, changes, mesh_size):
-    scene = jsnap.load_scene().replace({"solver.mesh_size": mesh_size, **changes})
+    scene = load_scene({"solver.mesh_size": mesh_size, **FULL, **changes})
     model = jsnap.build(scene)
     t0 = time.perf_counter()
     res = jsnap.rollout(model, dtype="float64", keep_x=True)
@@ -80,10 +87,10 @@ def analyse(name, changes, mesh_size):
     k = int(F.argmax())
     act = np.asarray(res.contact_active[k])
     idx = np.asarray(res.contact_index[k])[act]
-    G = np.asarray(res.contact_force[k])[act]  # (c, 3) on the socket, N
-    sock = model.socket
-    nodes = np.asarray(sock.sample_nodes)[idx]
-    w = np.asarray(sock.sample_weights)[idx]
+    G = np.asarray(res.contact_force[k])[act]  # (c, 3) on the hook, N
+    part = model.part  # the full model: free-node indices and shape functions of the points
+    nodes = np.asarray(part.sample_nodes)[idx]
+    w = np.asarray(part.sample_weights)[idx]
     n = model.n_dof
 
     def load(g):  # J' g
@@ -98,8 +105,11 @@ def analyse(name, changes, mesh_size):
         return float((ux * G[:, 0]).sum() / G[:, 0].sum())
 
     p = scene["material"]
-    asm = model.host.assembly
-    free = model.host.free
+    # The model holds no assembly: the same one, rebuilt from the scene's mesh.
+    geom = connector_geometry(scene)
+    asm = assemble(mesh_cantilever(geom, scene["solver"]["mesh_size"]), scene["solver"]["element"])
+    free = asm.free
+    assert free.size == n and np.array_equal(free, np.asarray(model.mesh.free))
     K = asm.stiffness(p["youngs_modulus"], p["poissons_ratio"])[free][:, free].tocsc()
     solve = spla.factorized(K)
     d_sim = deflection(np.asarray(res.x[k]))
@@ -107,8 +117,7 @@ def analyse(name, changes, mesh_size):
     d_lat, d_ax = deflection(solve(load(gx))), deflection(solve(load(gz)))
     d_static = deflection(solve(load(G)))
 
-    geom = model.host.connector
-    rest = np.asarray(model.sample_rest)[idx]
+    rest = np.asarray(model.samples.rest)[idx]
     z_c = float((rest[:, 2] * np.abs(G).sum(1)).sum() / np.abs(G).sum())
     Fx, Fz = -G[:, 0].sum(), -G[:, 2].sum()  # on the plug's side: both positive
     mu = scene["contact"]["friction"]

@@ -35,8 +35,9 @@ sweep); ``--part cost`` runs only 1. and takes 2. from that file when it was mad
 scene (3. then compares them). ``jsnap bench`` runs the check among the untimed scripts and the
 cost alone on the machine, since its timings are results. ``--part noise`` (not run by
 ``jsnap bench``) measures what limits the check: the loss's round-off, as the second differences
-of L at E (1 + k 1e-6), k = -2 .. 2, for each dense-inverse route (``noise``), and what it
-predicts for each parameter's quotients. Without ``--part``, both, one after
+of L at E (1 + k 1e-6), k = -2 .. 2, for the dense inverse (XLA's Cholesky; the redesign removed
+the LAPACK route the earlier runs compared it with), and what it predicts for each parameter's
+quotients. Without ``--part``, both, one after
 the other. Writes benchmarks/results/differentiation{,_coarse,_quick}.{json,png}.
 """
 
@@ -53,9 +54,15 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _common import FULL, load_scene
 
 import jsnap
-from jsnap._core import step as _sim
+from jsnap._core import rollout as _rollout
+from jsnap._core.params import params_valid
+from jsnap._core.step import Prepared, _step
+
+# XLA's small-loop option, before the first JAX computation (the committed timings have it).
+jsnap.configure_xla_cpu()
 
 OUT = Path(__file__).parent / "results"
 NAMES = ("E", "friction", "alpha", "beta")
@@ -66,11 +73,12 @@ TIGHT = {"contact.iterations": 20000, "contact.tolerance": 1e-11}
 CHECK_METHOD = "modal"  # the gradient check's socket (see the module docstring)
 
 
-def _scan_plain(model, prepared, state, controls, keep_x, rolled=True):
-    """_sim._scan without the checkpoint (reverse mode then stores every step's internals)."""
+def _scan_plain(model, prepared, state, controls, keep_x):
+    """jsnap._core.rollout._scan without the checkpoint (reverse mode then stores every step's
+    internals)."""
 
     def body(s, c):
-        s, out = _sim.step(model, prepared, s, c, rolled)
+        s, out = _step(model, prepared, s, c)
         return s, (out, s.x if keep_x else None)
 
     return jax.lax.scan(body, state, controls)
@@ -112,12 +120,13 @@ def cost(
 ):
     """One row of the cost table; ``keep`` (a dict) receives the compiled value_and_grad and the
     jitted loss, for the gradient check to reuse (the quick run)."""
-    model = jsnap.build(scene.replace({"contact.gradient": gradient, **(TIGHT if tight else {})}))
+    # contact.gradient is an internal key (with_internal).
+    model = jsnap.build(load_scene({"contact.gradient": gradient, **(TIGHT if tight else {})}, scene))
     loss, x0, arrays = _loss_fn(model)
-    original = _sim._scan
+    original = _rollout._scan
     if not checkpoint:
-        _sim._scan = eqx.filter_jit(_scan_plain)
-        # rollout's compiled whole (_sim._whole) looks _scan up when it is traced: no cached trace
+        _rollout._scan = _scan_plain
+        # rollout's compiled whole (_rollout._whole) looks _scan up when it is traced: no cached trace
         jax.clear_caches()
     try:
         vg = jax.jit(jax.value_and_grad(loss))
@@ -129,7 +138,7 @@ def cost(
         row = {
             "gradient": gradient,
             "checkpoint": checkpoint,
-            "tolerance": model.tolerance,
+            "tolerance": model.contact.solver.tol,
             "dof": model.n_dof,
             "steps": model.n_steps,
             "compile_s": t_compile,
@@ -160,11 +169,11 @@ def cost(
             row["loss"] = float(v)
             row["grad"] = {n: float(gi) for n, gi in zip(NAMES, g, strict=True)}
             if keep is not None:
-                scene_run = scene.replace(TIGHT) if tight else scene
+                scene_run = load_scene(TIGHT, scene) if tight else scene
                 keep.update(vg=compiled, f=f, x0=x0, arrays=arrays, scene=scene_run)
     finally:
-        if _sim._scan is not original:
-            _sim._scan = original
+        if _rollout._scan is not original:
+            _rollout._scan = original
             jax.clear_caches()
     print({k: v for k, v in row.items() if k != "grad"}, flush=True)
     return row
@@ -184,7 +193,8 @@ def _friction_losses(model, x0, frictions):
 
     @eqx.filter_jit  # the model an argument, not constants (see _loss_fn)
     def loss(model, prepared, mu):
-        p = _sim.Prepared(prepared.params.replace(friction=mu), prepared.op)
+        params = prepared.params.replace(friction=mu)
+        p = Prepared(params, prepared.op, params_valid(params))
         r = jsnap.rollout(model, prepared=p, controls=controls, dtype="float64")
         return jnp.sum(r.insertion_force**2)
 
@@ -193,27 +203,19 @@ def _friction_losses(model, x0, frictions):
 
 def noise(scene, check=None, k=(-2, -1, 0, 1, 2), h=1e-6):
     """Round-off of the loss: its second differences at E (1 + k h) (a smooth function's are
-    ~h^2 L'' ~ 1e-11 here), for LAPACK's and XLA's dense inverse; with a saved ``check``, the
-    central quotient's round-off error sqrt(2) sigma / (2 h |x dL/dx|) it predicts at each
-    swept step, beside the measured error."""
-    from jsnap._core import pmi as _integrate
-
-    out = {}
-    for route, minimum in (("lapack_potri", _integrate._HOST_INVERSE_MIN), ("xla_cholesky", 10**9)):
-        old, _integrate._HOST_INVERSE_MIN = _integrate._HOST_INVERSE_MIN, minimum
-        try:
-            model = jsnap.build(scene.replace(TIGHT))
-            loss, x0, arrays = _loss_fn(model)
-            f = jax.jit(loss)
-            L = np.array([float(f((x0[0] * (1 + j * h), *x0[1:]), arrays)) for j in k])
-        finally:
-            _integrate._HOST_INVERSE_MIN = old
-        d2 = np.diff(L, 2)
-        # iid errors of size sigma give second differences of variance 6 sigma^2
-        sig = float(np.sqrt(np.mean(d2**2) / 6))
-        out[route] = {"loss": L.tolist(), "second_differences": d2.tolist(), "sigma": sig}
-        print(route, out[route], flush=True)
-    sigma = max(r["sigma"] for r in out.values())
+    ~h^2 L'' ~ 1e-11 here), for the dense inverse (``spd_inverse``: XLA's Cholesky; the host
+    LAPACK route that earlier runs compared it with is gone since the redesign); with a saved
+    ``check``, the central quotient's round-off error sqrt(2) sigma / (2 h |x dL/dx|) it
+    predicts at each swept step, beside the measured error."""
+    model = jsnap.build(load_scene(TIGHT, scene))
+    loss, x0, arrays = _loss_fn(model)
+    f = jax.jit(loss)
+    L = np.array([float(f((x0[0] * (1 + j * h), *x0[1:]), arrays)) for j in k])
+    d2 = np.diff(L, 2)
+    # iid errors of size sigma give second differences of variance 6 sigma^2
+    sigma = float(np.sqrt(np.mean(d2**2) / 6))
+    out = {"xla_cholesky": {"loss": L.tolist(), "second_differences": d2.tolist(), "sigma": sigma}}
+    print("xla_cholesky", out["xla_cholesky"], flush=True)
     out["sigma"] = sigma
     if check:
         out["predicted"] = {
@@ -233,10 +235,10 @@ def noise(scene, check=None, k=(-2, -1, 0, 1, 2), h=1e-6):
 def check(scene, steps=STEPS, compiled=None, method=None):
     """The gradient check on the converged solve; ``compiled``: a tight cost row's functions;
     ``method``: the socket (default: the scene's)."""
-    if method:
-        scene = scene.replace({"solver.method": method})
-    model = jsnap.build(scene.replace(TIGHT))
-    if compiled and compiled["scene"].to_dict() == scene.replace(TIGHT).to_dict():
+    if method:  # "modal" is an internal choice of solver.method (with_internal)
+        scene = load_scene({"solver.method": method}, scene)
+    model = jsnap.build(load_scene(TIGHT, scene))
+    if compiled and compiled["scene"].to_dict() == load_scene(TIGHT, scene).to_dict():
         x0, f, arrays = compiled["x0"], compiled["f"], compiled["arrays"]
         t0 = time.perf_counter()
         v, g = compiled["vg"](x0, arrays)
@@ -275,6 +277,14 @@ def check(scene, steps=STEPS, compiled=None, method=None):
 
 
 def main(argv=None):
+    # jsnap's rollouts are differentiated and jitted here inside the script's own programs, which
+    # JAX lowers and transposes in the caller's mode: 64-bit, as every computation here ran
+    # before the redesign (importing jsnap no longer switches it on for the whole process).
+    with jax.enable_x64(True):
+        _main(argv)
+
+
+def _main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="CI smoke run: P2 2.5 mm, 40 mm/s")
     ap.add_argument("--coarse", action="store_true", help="P2 1.5 mm, 20 mm/s, converged-solve costs")
@@ -290,12 +300,21 @@ def main(argv=None):
         changes |= {"solver.mesh_size": 2.5, "motion.speed": 40.0}
     elif a.coarse:
         changes |= {"solver.mesh_size": 1.5, "motion.speed": 20.0}
-    scene = jsnap.load_scene().replace(changes)
+    # The full model (the shipped scene's method when the committed results were taken; now
+    # "reduced"), in float64 (``changes``).
+    scene = load_scene({**FULL, **changes})
     machine = f"{platform.machine()}, {platform.processor() or platform.system()}, {jax.devices()[0].platform}"
     stem = "differentiation" + ("_quick" if a.quick else "_coarse" if a.coarse else "")
     OUT.mkdir(exist_ok=True)
     method = None if a.quick else CHECK_METHOD
-    result = {"machine": machine, "changes": changes, "damping": DAMPING, "fd_steps": STEPS, "tight": TIGHT}
+    result = {
+        "machine": machine,
+        "base": FULL,
+        "changes": changes,
+        "damping": DAMPING,
+        "fd_steps": STEPS,
+        "tight": TIGHT,
+    }
     result["check_method"] = method or scene["solver"]["method"]
     path = OUT / f"{stem}.json"
     check_path = OUT / f"{stem}_check.json"

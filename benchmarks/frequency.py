@@ -26,10 +26,10 @@ first call (compile + one step) minus a steady step is its compile time, and the
 median over ``--runs`` passes through the motion. Every run covers the scene's whole motion
 (233 steps, 2.32 mm at 10 mm/s; contact from the second step on).
 
-``--quick``: the coarse mesh only, Models 1 and 4 only, one timed run each, and a 5-step motion
-(0.1 mm at 20 mm/s), for CI: it checks that everything runs, its rates are rough. If the neural
-SDF is not cached (it trains once, ~30 s here), the quick run uses the analytic SDF for Models
-2-4 instead and says so in the JSON (``sdf_models_2_4``).
+``--quick``: the coarse mesh only, Models 1 and 4 only, one timed run each, and a 20-step motion
+(0.4 mm at 20 mm/s; a scene may not have fewer steps), for CI: it checks that everything runs,
+its rates are rough. If the neural SDF is not cached (it trains once, ~30 s here), the quick run
+uses the analytic SDF for Models 2-4 instead and says so in the JSON (``sdf_models_2_4``).
 Writes benchmarks/results/frequency{,_quick}.{json,png}.
 """
 
@@ -45,11 +45,15 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _common import code_version, jitted_step, scan_timing
+from _common import FLOAT32, code_version, jitted_step, load_scene, scan_timing
 
 import jsnap
 from jsnap._build.neural_sdf import NeuralSDFConfig, cache_key, cache_path, shipped_path
-from jsnap._core.sdf import rounded_box_mesh
+from jsnap._geometry.plug import default_plug
+from jsnap._geometry.scene import connector_geometry
+
+# XLA's small-loop option, before the first JAX computation (the committed timings have it).
+jsnap.configure_xla_cpu()
 
 OUT = Path(__file__).parent / "results"
 ELEMENT = "P2"
@@ -60,7 +64,7 @@ MODELS = {
     3: ("segmented", "neural", "segmented, neural SDF"),
     4: ("reduced", "neural", "segmented + reduced, neural SDF"),
 }
-QUICK_MOTION = {"motion.stroke": 0.1, "motion.speed": 20.0}  # 5 steps of 1 ms
+QUICK_MOTION = {"motion.stroke": 0.4, "motion.speed": 20.0}  # 20 steps of 1 ms, the fewest allowed
 
 
 def machine(load) -> str:
@@ -72,11 +76,7 @@ def machine(load) -> str:
 
 def neural_cached(scene) -> bool:
     """Whether the default neural SDF of the scene's plug is cached or shipped (no training needed)."""
-    from jsnap._build.model import _plug_geometry
-    from jsnap._geometry.scene import connector_geometry
-
-    half, radius, _ = _plug_geometry(scene, connector_geometry(scene))
-    key = cache_key(rounded_box_mesh(half, radius), NeuralSDFConfig())
+    key = cache_key(default_plug(scene["plug"], connector_geometry(scene)).mesh(), NeuralSDFConfig())
     return cache_path(key).is_file() or shipped_path(key).is_file()
 
 
@@ -101,12 +101,13 @@ def python_timing(model, prepared, runs: int):
 
 def run(mesh: str, number: int, changes: dict, runs: int) -> dict:
     method, sdf, label = MODELS[number]
-    scene = jsnap.load_scene().replace(
+    scene = load_scene(
         {
             "solver.element": ELEMENT,
             "solver.mesh_size": MESHES[mesh],
             "solver.method": method,
             "solver.sdf": sdf,
+            **FLOAT32,  # every model in float32 (the default is float64 for all but the reduced one)
             **changes,
         }
     )
@@ -117,7 +118,7 @@ def run(mesh: str, number: int, changes: dict, runs: int) -> dict:
     # Model 1 (35-80 steps/s: 3-7 s a pass) is not run again in the scan (its compile time is
     # measured apart) and makes one Python pass: the 30-minute budget of `jsnap bench`. Its pass
     # covers the whole motion: its exact mesh query grows with the points near the plug, so the
-    # early steps are cheaper than the rest. (In the quick run's 5-step motion a second call is
+    # early steps are cheaper than the rest. (In the quick run's 20-step motion a second call is
     # cheaper than the two-step compile.)
     slow = number == 1 and not changes
     res, first, scan_times = scan_timing(model, prepared, 0 if slow else runs)
@@ -132,7 +133,7 @@ def run(mesh: str, number: int, changes: dict, runs: int) -> dict:
         "label": label,
         "method": method,
         "sdf": sdf,
-        "full_dof": int(model.host.free.size),
+        "full_dof": model.full_dof,
         "dof": model.n_dof,
         "build_seconds": build_s,
         "steps": n,
@@ -147,7 +148,7 @@ def run(mesh: str, number: int, changes: dict, runs: int) -> dict:
         "max_overflow": int(np.asarray(res.overflow).max()),
     }
     if method != "full":
-        row["orders"] = [int(k) for k in model.socket.orders]
+        row["orders"] = [int(k) for k in model.part.orders]
     return row
 
 
@@ -193,8 +194,15 @@ def chart(rows, title, path):
 
 
 def main(argv=None):
+    # The Python rate steps a jitted jsnap.step, which runs in JAX's 64-bit mode (see
+    # _common.jitted_step), as every computation here did before the redesign.
+    with jax.enable_x64(True):
+        _main(argv)
+
+
+def _main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="coarse mesh, 5-step motion")
+    ap.add_argument("--quick", action="store_true", help="coarse mesh, 20-step motion")
     ap.add_argument("--models", type=int, nargs="+", choices=sorted(MODELS), default=None)
     ap.add_argument("--runs", type=int, default=None, help="timed runs per rate (median); 3, quick 1")
     a = ap.parse_args(argv)
@@ -253,7 +261,7 @@ def main(argv=None):
     stem = "frequency_quick" if a.quick else "frequency"
     OUT.mkdir(exist_ok=True)
     (OUT / f"{stem}.json").write_text(json.dumps(doc, indent=1))
-    motion = "5-step motion (0.1 mm at 20 mm/s)" if a.quick else "default motion, 233 steps"
+    motion = "20-step motion (0.4 mm at 20 mm/s)" if a.quick else "default motion, 233 steps"
     title = (
         f"Simulation frequency, one scene ({ELEMENT}, float32, {motion}); Models 2-4 SDF: {MODELS[2][1]}\n"
         f"{mach}"

@@ -33,6 +33,9 @@ import numpy as np
 
 import jsnap
 
+# XLA's small-loop option, before the first JAX computation (the committed timings have it).
+jsnap.configure_xla_cpu()
+
 OUT = Path(__file__).parent / "results"
 TRUE = {"E": 2200.0, "friction": 0.3}
 NOISE = 0.05  # of the peak force, per sample

@@ -2,6 +2,9 @@
 
     python benchmarks/reduction_accuracy.py [--quick]
 
+The full model is stated (``solver.method = "full"``): the shipped scene defaults to the reduced
+one since the redesign. Every rollout names its dtype.
+
 1. Segmented (no reduction) as the interface stiffness k_c grows, ~1300-dof P2 mesh (1.6 mm):
    insertion-force RMSE against the full model (both float64) and the largest relative error
    of the static normal compliance at the contact candidate points.
@@ -29,11 +32,18 @@ from pathlib import Path
 import jax
 import numpy as np
 import scipy.linalg as sla
-from _common import LIGHT
+from _common import FULL, LIGHT, load_scene
 
 import jsnap
 from jsnap._build import reduce as R
-from jsnap._build.fem import lame
+from jsnap._build.fem import assemble
+from jsnap._build.model import build_model
+from jsnap._core.params import lame
+from jsnap._geometry.cantilever import mesh_cantilever
+from jsnap._geometry.scene import connector_geometry
+
+# XLA's small-loop option, before the first JAX computation (the committed results had it).
+jsnap.configure_xla_cpu()
 
 OUT = Path(__file__).parent / "results"
 
@@ -57,18 +67,21 @@ def _rmse(F, F0):
 
 
 def _normals(model):
-    s = np.asarray(model.sample_stencil)
+    s = np.asarray(model.samples.stencil)
     n = np.cross(s[:, 3] - s[:, 2], s[:, 1] - s[:, 0])
     return n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
-def full_normal_compliance(model) -> np.ndarray:
+def full_normal_compliance(model, scene) -> np.ndarray:
     """(P,) static compliance of the full model along each candidate point's normal, mm/N."""
-    asm = model.host.assembly
+    # The model holds no assembly: the same one, rebuilt from the scene's mesh.
+    s = scene["solver"]
+    asm = assemble(mesh_cantilever(connector_geometry(scene), s["mesh_size"]), s["element"])
     lam, mu = lame(float(model.params.E), float(model.params.nu))
     f = asm.free
+    assert np.array_equal(f, np.asarray(model.mesh.free))
     K = (lam * asm.K_lam + mu * asm.K_mu)[f][:, f]
-    s = model.socket
+    s = model.part
     nodes, w = np.asarray(s.sample_nodes), np.asarray(s.sample_weights)
     loads = np.zeros((f.size, nodes.shape[0]))
     n = _normals(model)
@@ -80,7 +93,7 @@ def full_normal_compliance(model) -> np.ndarray:
 
 
 def socket_normal_compliance(model, kc=None) -> np.ndarray:
-    s = model.socket
+    s = model.part
     lam, mu = lame(float(model.params.E), float(model.params.nu))
     kc = float(s.coupling[0]) if kc is None else kc
     cr = np.asarray(s.coupling_rows)
@@ -92,13 +105,14 @@ def socket_normal_compliance(model, kc=None) -> np.ndarray:
 
 
 def coupling_table(h, kcs):
-    scene = jsnap.load_scene().replace({"solver.mesh_size": h})
+    scene = load_scene({"solver.mesh_size": h, **FULL})
     full = jsnap.build(scene)
     F0 = _force(full)
-    c0 = full_normal_compliance(full)
+    c0 = full_normal_compliance(full, scene)
     rows = []
     for kc in kcs:
-        seg = jsnap.build(scene.replace({"solver.method": "segmented", "solver.interface_stiffness": kc}))
+        # solver.interface_stiffness is an internal key (with_internal)
+        seg = jsnap.build(load_scene({"solver.method": "segmented", "solver.interface_stiffness": kc}, scene))
         F = _force(seg)
         c = socket_normal_compliance(seg)
         rows.append(
@@ -110,18 +124,18 @@ def coupling_table(h, kcs):
             )
         )
         print(rows[-1], flush=True)
-    return dict(mesh_size=h, full_dof=int(full.n_dof), segment_dof=list(seg.socket.orders), rows=rows)
+    return dict(mesh_size=h, full_dof=int(full.n_dof), segment_dof=list(seg.part.orders), rows=rows)
 
 
 def reduction_table(h, tols, float32=True):
     """Reduced against full at mesh ``h`` for each tolerance; ``float32=False`` (the quick run)
     skips the float32 rollouts (two more compiled programs)."""
-    scene = jsnap.load_scene().replace({"solver.mesh_size": h})
+    scene = load_scene({"solver.mesh_size": h, **FULL})
     full = jsnap.build(scene)
     F64 = _force(full)
     F32 = _force(full, "float32") if float32 else None
-    Fe = _force(full, params=full.params.replace(E=full.params.E * (1 + 1e-3)))
-    c0 = full_normal_compliance(full)
+    Fe = _force(full, params=full.params.replace(E=float(full.params.E) * (1 + 1e-3)))
+    c0 = full_normal_compliance(full, scene)
     out = dict(
         mesh_size=h,
         full_dof=int(full.n_dof),
@@ -129,18 +143,18 @@ def reduction_table(h, tols, float32=True):
         full_float32_rmse_rel_peak=_rmse(F32, F64) if float32 else None,
         full_stiffer_1e3_rmse_rel_peak=_rmse(Fe, F64),
         insertion_force_full=F64.tolist(),
-        travel=(np.arange(1, F64.size + 1) * full.dt * full.speed).tolist(),
+        travel=(np.arange(1, F64.size + 1) * full.dt * scene["motion"]["speed"]).tolist(),
         rows=[],
     )
     print({k: v for k, v in out.items() if k not in ("insertion_force_full", "travel", "rows")}, flush=True)
     for tol in tols:
-        red = jsnap.build(scene.replace({"solver.method": "reduced", "solver.hsv_tolerance": tol}))
-        info = red.host.reduction
+        red, report = build_model(load_scene({"solver.method": "reduced", "solver.hsv_tolerance": tol}, scene))
+        info = report.reduction
         F = _force(red)
         c = socket_normal_compliance(red)
         row = dict(
             hsv_tolerance=tol,
-            orders=list(red.socket.orders),
+            orders=list(red.part.orders),
             segments=[{k: v for k, v in s.items() if k != "hsv"} for s in info["segments"]],
             interface_shapes=info["interface_shapes"],
             build_seconds=info["seconds"],
@@ -158,15 +172,15 @@ def reduction_table(h, tols, float32=True):
 
 def light_contact(h, F0):
     """The light contact settings against the default ones (``F0``: the full model's force)."""
-    scene = jsnap.load_scene().replace({"solver.mesh_size": h})
-    light = jsnap.build(scene.replace(LIGHT))
-    red_light = jsnap.build(scene.replace({**LIGHT, "solver.method": "reduced"}))
+    scene = load_scene({"solver.mesh_size": h, **FULL})
+    light = jsnap.build(load_scene(LIGHT, scene))
+    red_light = jsnap.build(load_scene({**LIGHT, "solver.method": "reduced"}, scene))
     out = dict(
         mesh_size=h,
         full_light_vs_full_default=_rmse(_force(light), F0),
         reduced_light_vs_full_default=_rmse(_force(red_light), F0),
         reduced_light_float32_vs_full_default=_rmse(_force(red_light, "float32"), F0),
-        reduced_light_orders=list(red_light.socket.orders),
+        reduced_light_orders=list(red_light.part.orders),
     )
     print(out, flush=True)
     return out

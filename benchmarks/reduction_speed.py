@@ -4,8 +4,9 @@
     python benchmarks/reduction_speed.py [--quick]
 
 For each P2 mesh (``solver.mesh_size``) the default scene is built with ``solver.method`` =
-``full`` and ``reduced`` (default ``solver.hsv_tolerance``), and rolled out in float32 (the
-scene's dtype) with two contact configurations:
+``full`` and ``reduced`` (default ``solver.hsv_tolerance``), and rolled out in float32
+(``solver.dtype``, stated: the full model's default is float64 since the redesign) with two
+contact configurations:
 
 * ``default``: the scene's contact settings (64 slots, candidate lines every 1.0 mm across the
   width, up to 500 APGD iterations);
@@ -47,11 +48,15 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _common import FLOAT32, FULL, TIGHT_ADMM, jitted_step, load_scene
 from _common import LIGHT as LIGHT_CONTACT
-from _common import TIGHT_ADMM, jitted_step
 
 import jsnap
-from jsnap._core.step import _cast
+from jsnap._build.model import build_model
+from jsnap._core.util import cast_floats
+
+# XLA's small-loop option, before the first JAX computation (the committed timings have it).
+jsnap.configure_xla_cpu()
 
 OUT = Path(__file__).parent / "results"
 # Timed rollouts per row: at least the first, and more, up to the second, until SPREAD_S seconds
@@ -76,9 +81,10 @@ CONFIGS = {
 
 
 def _build(scene):
+    """``(model, build report, seconds)``."""
     t0 = time.perf_counter()
-    model = jsnap.build(scene)
-    return model, time.perf_counter() - t0
+    model, report = build_model(scene)
+    return model, report, time.perf_counter() - t0
 
 
 def _tight_reference(mesh_size: float) -> np.ndarray:
@@ -86,9 +92,10 @@ def _tight_reference(mesh_size: float) -> np.ndarray:
     solved to 1e-10 (ADMM, ≤ 20000 iterations): what every row of this mesh converges to. The
     rows' distance from each other is dominated by the step in which the snap falls (float32
     round-off moves it by a step either way); this reference separates that from the solve."""
-    scene = jsnap.load_scene().replace(
+    scene = load_scene(  # TIGHT_ADMM's ADMM is an internal choice (with_internal)
         {
             "solver.mesh_size": mesh_size,
+            **FULL,
             "solver.dtype": "float64",
             **LIGHT,
             **TIGHT_ADMM,
@@ -117,10 +124,11 @@ def _socket_us_per_step(model, prepared, n: int = 100) -> float:
     candidate and stencil displacements, the contact operator of ``capacity`` points, their
     velocity, energy and base wrench), without the collision and the contact solve."""
     dtype = jnp.dtype(model.dtype)
-    m, p = _cast(model, dtype), _cast(prepared, dtype)
-    sock, op, mat = m.socket, p.op, p.params.material
-    idx = jnp.arange(model.capacity) * (model.n_samples // model.capacity)
-    force = jnp.full((model.capacity, 3), 1e-3, dtype)
+    m, p = cast_floats(model, dtype), cast_floats(prepared, dtype)
+    sock, op, mat = m.part, p.op, p.params.material
+    capacity = model.contact.capacity
+    idx = jnp.arange(capacity) * (model.n_samples // capacity)
+    force = jnp.full((capacity, 3), 1e-3, dtype)
 
     @jax.jit
     def loop(x0):
@@ -135,7 +143,7 @@ def _socket_us_per_step(model, prepared, n: int = 100) -> float:
             u = sock.point_velocity(vbar, idx)
             x_new, v_new = x + op.dt * vbar, 2 * vbar - v
             e = sock.energy(op, x_new, v_new)
-            f, _ = sock.base_wrench(op, mat, x, v, v_new, vbar)
+            f, _ = sock.base_wrench(mat, op.dt, x, v, v_new, vbar)
             return x_new + 0 * (e + f[0] + jnp.sum(u)), v_new
 
         return jax.lax.fori_loop(0, n, body, (x0, 0 * x0))
@@ -151,21 +159,19 @@ def _socket_us_per_step(model, prepared, n: int = 100) -> float:
 
 
 def run(mesh_size: float, method: str, config: str, quick: bool = False) -> dict:
-    scene = jsnap.load_scene().replace(
-        {"solver.mesh_size": mesh_size, "solver.method": method, **CONFIGS[config]}
-    )
-    model, build_s = _build(scene)
+    scene = load_scene({"solver.mesh_size": mesh_size, "solver.method": method, **FLOAT32, **CONFIGS[config]})
+    model, report, build_s = _build(scene)
     row = {
         "mesh_size": mesh_size,
         "method": method,
         "config": config,
-        "full_dof": int(model.host.free.size),
+        "full_dof": model.full_dof,
         "dof": model.n_dof,
         "build_seconds": build_s,
     }
     if method == "reduced":
-        red = model.host.reduction
-        row["orders"] = list(model.socket.orders)
+        red = report.reduction
+        row["orders"] = list(model.part.orders)
         row["reduction_seconds"] = red["seconds"] if not red["cached"] else None
         row["cached"] = red["cached"]
     prepared = jsnap.prepare(model)
@@ -202,6 +208,13 @@ def run(mesh_size: float, method: str, config: str, quick: bool = False) -> dict
 
 
 def main(argv=None):
+    # The per-call rate steps a jitted jsnap.step, which runs in JAX's 64-bit mode (see
+    # _common.jitted_step), as every computation here did before the redesign.
+    with jax.enable_x64(True):
+        _main(argv)
+
+
+def _main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one coarse mesh, light contact only")
     a = ap.parse_args(argv)
@@ -237,7 +250,7 @@ def main(argv=None):
                         F = np.asarray(r["insertion_force"])
                         r["rmse_vs_tight_full_rel_peak"] = float(np.sqrt(np.mean((F - ref) ** 2)) / ref.max())
             if not a.quick:  # the cached reduced model loads instead of being rebuilt
-                _, t = _build(jsnap.load_scene().replace({"solver.mesh_size": h, "solver.method": "reduced"}))
+                _, _, t = _build(load_scene({"solver.mesh_size": h, "solver.method": "reduced", **FLOAT32}))
                 for r in rows:
                     if r["mesh_size"] == h and r["method"] == "reduced":
                         r["cached_build_seconds"] = t

@@ -11,6 +11,7 @@ import pytest
 
 from jsnap._apps import bench as _bench
 from jsnap._apps.cli import main as cli_main
+from jsnap._apps.xla import SMALL_LOOP_OPTION, with_small_loop_option
 
 ROOT = Path(__file__).resolve().parent.parent / "benchmarks"
 
@@ -49,7 +50,9 @@ def test_quick_benchmarks_run(tmp_path, monkeypatch):
     monkeypatch.setenv("JSNAP_BENCHMARKS", str(bench))
     # Its own process: fifteen scripts' compiled programs and models stay out of the test
     # process's memory.
-    run = subprocess.run([sys.executable, "-m", "jsnap._apps.cli", "bench", "--quick"], cwd=tmp_path, check=False)
+    run = subprocess.run(
+        [sys.executable, "-m", "jsnap._apps.cli", "bench", "--quick"], cwd=tmp_path, check=False
+    )
     assert run.returncode == 0
     times = json.loads((bench / "results" / "bench_times_quick.json").read_text())
     quick = [b.name for b in _bench.available(bench) if b.quick]
@@ -70,6 +73,16 @@ def test_quick_xla_flags_keep_the_users():
     out = _bench.quick_xla_flags(mine).split()
     assert mine in out and "--xla_backend_optimization_level=1" not in out
     assert "--xla_cpu_use_fusion_emitters=false" in out
+    # XLA's small-loop option is among them (the quick scripts share worker processes, so a
+    # script's own jsnap.configure_xla_cpu() would come too late), joined to the user's own extra
+    # options; flags that already went through configure_xla_cpu (as `jsnap` does for its
+    # process) give the same result.
+    assert SMALL_LOOP_OPTION in _bench.quick_xla_flags("")
+    user = "--xla_backend_extra_options=foo=1"
+    out = _bench.quick_xla_flags(user)
+    assert f"--xla_backend_extra_options=foo=1,{SMALL_LOOP_OPTION}=" in out
+    assert _bench.quick_xla_flags(with_small_loop_option(user)) == out
+    assert _bench.quick_xla_flags(with_small_loop_option("")) == _bench.quick_xla_flags("")
 
 
 def test_full_run_untimed_side_by_side_then_timed_alone(tmp_path, monkeypatch):

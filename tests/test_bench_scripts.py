@@ -1,5 +1,6 @@
-"""The frequency and throughput benchmarks: registered with `jsnap bench`, and their committed
-results have the headline the README table reads (positive rates, the expected keys).
+"""The frequency, throughput, precision and xla_option benchmarks: registered with `jsnap bench`,
+and their committed results have the headline the README table reads (positive rates, the
+expected keys); the committed precision measurement justifies the default rollout dtype.
 
 Running the scripts is tested by ``tests/test_bench.py::test_quick_benchmarks_run`` (``jsnap bench
 --quick``); quick outputs are not committed.
@@ -10,7 +11,9 @@ from pathlib import Path
 
 import pytest
 
+import jsnap
 from jsnap._apps import bench as _bench
+from jsnap._build.model import rollout_dtype
 
 ROOT = Path(__file__).resolve().parent.parent / "benchmarks"
 
@@ -22,7 +25,7 @@ def _load(stem):
     return json.loads(path.read_text())
 
 
-@pytest.mark.parametrize("name", ["frequency", "throughput"])
+@pytest.mark.parametrize("name", ["frequency", "throughput", "precision", "xla_option"])
 def test_registered_with_quick_variant(name):
     bench = {b.name: b for b in _bench.available(ROOT)}
     assert name in bench and bench[name].quick
@@ -59,3 +62,36 @@ def test_throughput_headline():
             assert [r["batch"] for r in rows] == sorted(r["batch"] for r in rows)
             assert all(r["scene_steps_per_second"] > 0 for r in rows)
     assert "scene-steps/s" in _bench._throughput(d)
+
+
+def test_precision_headline_justifies_the_default_dtype():
+    """Per method, the default rollout dtype is float32 only where the committed measurement puts
+    the float32 peak within 1 % of float64's, and the measurement's defaults are the library's
+    (a change of either needs the other)."""
+    d = _load("precision")
+    h = d["headline"]
+    assert not h["quick"]
+    assert set(h["methods"]) == {"reduced", "full", "segmented"}
+    for method, v in h["methods"].items():
+        assert v["peak_float32_N"] > 0 and v["peak_float64_N"] > 0 and v["ok"]
+        assert v["float32_within_1_percent"] == (abs(v["float32_vs_own_float64"]) <= h["threshold"])
+        assert v["default_dtype"] == rollout_dtype(jsnap.load_scene().replace({"solver.method": method}))
+        if v["default_dtype"] == "float32":
+            assert v["float32_within_1_percent"], method
+    assert h["defaults_justified"] and h["all_ok"]
+    assert "float64 peak" in _bench._precision(d)
+
+
+def test_xla_option_headline():
+    d = _load("xla_option")
+    h = d["headline"]
+    assert not h["quick"]
+    assert h["with"]["steps_per_second"] > 0 and h["without"]["steps_per_second"] > 0
+    assert h["rounds"] == len(d["rounds"]) >= 3
+    # Each round measured one process with the option and one without.
+    assert all(r["with"]["small_loop_option"] and not r["without"]["small_loop_option"] for r in d["rounds"])
+    assert all(r["with"]["configure_xla_cpu"] in ("set", "user") for r in d["rounds"])
+    assert h["speedup"] == pytest.approx(h["with"]["steps_per_second"] / h["without"]["steps_per_second"])
+    # The option changes how the solver's loops are compiled, not what they compute.
+    assert h["float64_force_max_abs_diff_rel_peak"] < 1e-6
+    assert "steps/s" in _bench._xla_option(d)

@@ -11,6 +11,11 @@ so the benchmarks never rot): smoke runs whose time is mostly XLA compilation, s
 one after another, and are compiled with ``QUICK_XLA_FLAGS``; their timings are not headline
 numbers.
 
+XLA's small-loop option (``jsnap.configure_xla_cpu``): the timing scripts opt in themselves, as a
+program does, before their first computation. ``jsnap`` opts its own process in, so a full run's
+scripts inherit the option; the quick workers start with it (``QUICK_XLA_FLAGS``), since their
+scripts share processes and XLA reads its flags once per process.
+
 The benchmarks live in the source tree, not in the installed package: run ``jsnap bench`` from
 a checkout (or set ``JSNAP_BENCHMARKS`` to the folder).
 """
@@ -25,6 +30,8 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+
+from jsnap._apps.xla import _EXTRA, SMALL_LOOP_BYTES, SMALL_LOOP_OPTION, with_small_loop_option
 
 
 @dataclass(frozen=True)
@@ -258,6 +265,35 @@ def _contact_tolerance(d):
     return "1344-dof reduced, light contact (SPG), by tolerance: " + "; ".join(parts)
 
 
+def _precision(d):
+    h = d["headline"]
+    parts = [
+        f"{m} {100 * v['float32_vs_own_float64']:+.2f} % ({v['default_dtype']})"
+        for m, v in h["methods"].items()
+    ]
+    agree = "every default justified" if h["defaults_justified"] else "a float32 default is NOT within 1 %"
+    return (
+        "shipped scene, float32 peak vs the same method's float64 peak (default dtype): "
+        + ", ".join(parts)
+        + f"; float32 within 1 %: {', '.join(h['float32_within_1_percent']) or 'none'} ({agree})"
+    )
+
+
+def _xla_option(d):
+    h = d["headline"]
+    lo, hi = h["load_average_range"]
+    rates = f"{h['without']['steps_per_second']:.0f} → {h['with']['steps_per_second']:.0f} steps/s"
+    fastest = h["speedup_fastest_rollouts"]
+    out = (
+        f"shipped scene ({h['full_dof']} → {h['dof']} dof, {h['dtype']}): {rates} with "
+        f"jsnap.configure_xla_cpu() (×{h['speedup']:.2f}; fastest rollouts ×{fastest:.2f}; "
+        f"medians of {h['rounds']} rounds, load average {lo:.1f}-{hi:.1f})"
+    )
+    if "float64_force_max_abs_diff_rel_peak" in h:
+        out += f"; float64 forces within {h['float64_force_max_abs_diff_rel_peak']:.0e} of the peak"
+    return out
+
+
 def _generic(d):
     for key in ("summary", "headline"):
         if key in d:
@@ -312,6 +348,13 @@ BENCHMARKS = [
         timed=False,
     ),
     Bench(
+        "precision",
+        "peak force of each model in float32 and float64 (the default rollout dtype)",
+        True,
+        _precision,
+        timed=False,
+    ),
+    Bench(
         "differentiation_check",
         "converged gradient through contact against central differences (default scene)",
         False,
@@ -339,6 +382,12 @@ BENCHMARKS = [
     ),
     Bench("frequency", "steps/s of Models 1-4, ~660 and ~1300 dof (the paper's Fig. 4)", True, _frequency),
     Bench("throughput", "batched (vmap) scene-steps/s of the reduced model vs batch size", True, _throughput),
+    Bench(
+        "xla_option",
+        "step rate of the shipped scene with and without jsnap.configure_xla_cpu()",
+        True,
+        _xla_option,
+    ),
 ]
 
 
@@ -484,15 +533,28 @@ def _times_line(root: Path, quick: bool) -> str | None:
 #   full runs' by round-off (a contact event can move by a step).
 # Whole quick run, 2 workers: 186 and 188 s with the emitters flag only (session 8), 169 s twice
 # with both (session 9). The full runs, whose timings are the headline numbers, keep XLA's
-# defaults.
-QUICK_XLA_FLAGS = "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=1"
+# defaults for these two.
+# And XLA's small-loop option (jsnap._apps.xla), which the scripts opt into themselves
+# (jsnap.configure_xla_cpu() before their first computation): the quick scripts share worker
+# processes and XLA reads its flags once per process, so a script's own opt-in would come too
+# late after another script's first computation (it warns and changes nothing). The workers start
+# with the option, for every script alike; a full run's scripts, each in its own process, inherit
+# it from the command line (`jsnap` opts in for its process) and opt in again themselves.
+QUICK_XLA_FLAGS = (
+    f"--xla_backend_extra_options={SMALL_LOOP_OPTION}={SMALL_LOOP_BYTES} "
+    "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=1"
+)
 
 
 def quick_xla_flags(user: str) -> str:
-    """``XLA_FLAGS`` for the quick runs: the user's flags, then each of ``QUICK_XLA_FLAGS``
-    that the user has not set (the user's own setting of a flag wins)."""
-    extra = [f for f in QUICK_XLA_FLAGS.split() if f.split("=")[0] not in user]
-    return " ".join([user.strip(), *extra]).strip()
+    """``XLA_FLAGS`` for the quick runs: the user's flags with XLA's small-loop option
+    (``with_small_loop_option``: joined to the user's ``--xla_backend_extra_options``, the
+    user's own value kept), then each other flag of ``QUICK_XLA_FLAGS`` that the user has not
+    set (the user's own setting of a flag wins). Idempotent: flags that already went through
+    ``jsnap.configure_xla_cpu`` give the same result."""
+    flags = with_small_loop_option(user.strip())
+    extra = [f for f in QUICK_XLA_FLAGS.split() if not f.startswith(_EXTRA) and f.split("=")[0] not in flags]
+    return " ".join([flags, *extra]).strip()
 
 
 @contextlib.contextmanager

@@ -95,13 +95,15 @@ def params_from_scene(scene: Scene) -> Params:
 
 
 def rollout_dtype(scene: Scene) -> str:
-    """``solver.dtype``, or the default: float32 for the reduced model, float64 for the others.
+    """``solver.dtype``, or the default: float64 for the full model (and its modal form),
+    float32 for the reduced and segmented ones.
 
     The default scene's peak insertion force in float32 is within 1 % of float64 with the
-    reduced model, and 1-2 % off with the full one, whose dense ``S^-1`` rounded to float32
-    perturbs the stiff contact response (``benchmarks/precision.py``)."""
+    reduced (-0.75 %) and segmented (+0.40 %) models, and 1.8 % off with the full one, whose
+    dense ``S^-1`` rounded to float32 perturbs the stiff contact response
+    (``benchmarks/precision.py``)."""
     s = scene["solver"]
-    return s["dtype"] or ("float32" if s["method"] == "reduced" else "float64")
+    return s["dtype"] or ("float64" if s["method"] in ("full", "modal") else "float32")
 
 
 def available_memory() -> int:

@@ -114,9 +114,7 @@ def _nonneg(unit, default=REQUIRED, doc="", **kw):
 
 SCHEMA: dict[str, dict[str, Key]] = {
     "connector": {
-        "type": Key(
-            str, choices=("cantilever",), doc="connector family (DESIGN: the canonical cantilever hook)"
-        ),
+        "type": Key(str, choices=("cantilever",), doc="connector family (the canonical cantilever snap hook)"),
         "length": _pos("mm", doc="L, arm length from the fixed root (z = 0) to the retention face"),
         "thickness": _pos("mm", doc="h, arm thickness at the root (the bending direction x)"),
         "tip_thickness": _pos("mm", None, "h_tip, arm thickness at z = L (tapered arm); default: thickness"),
@@ -215,8 +213,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
             str,
             None,
             choices=("float32", "float64"),
-            doc="rollout precision; default float32 for the reduced model and float64 for the others "
-            "(their float32 peak force is off by more than 1 %: benchmarks/precision.py)",
+            doc="rollout precision; default float64 for the full model (its float32 peak force is 1.8 % "
+            "off) and float32 for the reduced and segmented ones (within 1 %: benchmarks/precision.py)",
         ),
         "hsv_tolerance": Key(
             float,
