@@ -241,19 +241,27 @@ class FitResult:
 
     Attributes:
         names: fitted parameters, in order.
-        values, initial: fitted and starting values, in the parameters' units (FIT_PARAMETERS).
+        values: fitted values, in the parameters' units (FIT_PARAMETERS).
+        initial: starting values, same units.
         std_errors: Gauss–Newton (Laplace) standard errors, same units (``inf`` if a parameter
             does not affect the force).
         correlation: (p, p) correlation matrix of the estimates.
         params: the fitted :class:`Params` (other fields as in the scene).
-        t: (n,) simulation output times, s;   mask: (n,) times covered by the measurement.
-        measured, fitted, start: (n,) resampled measurement, fitted and initial model force, N.
-        rms_residual: N, over the covered times;   noise_estimate: the residual σ, N.
-        loss_history: loss after each iteration;   iterations, evaluations: optimiser iterations
-        and differentiated rollouts (gradients and Jacobians);   seconds: wall time
-        (compilation included).
+        t: (n,) simulation output times, s.
+        mask: (n,) bool, the times covered by the measurement.
+        measured: (n,) the measurement resampled onto ``t``, N.
+        fitted: (n,) the fitted model's force, N.
+        start: (n,) the initial model's force, N.
+        rms_residual: RMS of measured minus fitted force over the covered times, N.
+        noise_estimate: the residual's standard deviation σ, N.
+        loss_history: loss after each iteration.
+        iterations: optimiser iterations.
+        evaluations: differentiated rollouts (gradients and Jacobians).
+        seconds: wall time (compilation included).
         converged: the step fell below ``xtol`` (not just ``max_iters`` reached).
-        seeded: values after the seed search (None without it);   rollouts: its forward runs.
+        source: where the measurement came from (its file).
+        seeded: values after the seed search (None without it).
+        rollouts: the seed search's forward rollouts.
     """
 
     names: tuple[str, ...]

@@ -59,11 +59,19 @@ def _backend_started() -> bool:
 
 
 def configure_xla_cpu() -> str:
-    """Set XLA:CPU's small-loop option for this process (see the module docstring): the reduced
-    model's steps run 1.4-1.75x faster. Call it before the first JAX computation.
+    """Set XLA:CPU's small-loop option for this process: the contact solvers' loops are then
+    compiled into single kernels instead of being run kernel by kernel, and the reduced model's
+    steps run 1.4-1.75x faster (``benchmarks/xla_option.py``).
 
-    Returns what was done: ``"set"``; ``"user"`` (``XLA_FLAGS`` names the option already: kept);
-    ``"late"`` (JAX's backend had started: nothing changed, with a warning).
+    The option (``xla_cpu_small_while_loop_byte_threshold``, set to :data:`SMALL_LOOP_BYTES`
+    through ``XLA_FLAGS``) belongs to the whole process and is read once, when JAX starts its
+    CPU backend, so ``import jsnap`` does not set it: call this before the first JAX
+    computation (the ``jsnap`` command line does), or set ``XLA_FLAGS`` yourself. The option
+    joins an ``--xla_backend_extra_options`` that ``XLA_FLAGS`` already gives.
+
+    Returns:
+        What was done: ``"set"``; ``"user"`` (``XLA_FLAGS`` names the option already: kept);
+        ``"late"`` (JAX's backend had started: nothing changed, with a warning).
     """
     current = os.environ.get("XLA_FLAGS", "")
     flags = with_small_loop_option(current)

@@ -112,7 +112,8 @@ class Model(eqx.Module):
 
     @property
     def method(self) -> str:
-        """The deformable part's model: ``"full"``, ``"modal"``, ``"segmented"`` or ``"reduced"``."""
+        """Which model of the deformable part this is (``"full"``, ``"modal"``, ``"segmented"`` or
+        ``"reduced"``)."""
         return _METHODS[type(self.part)]
 
     @property

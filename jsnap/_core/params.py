@@ -57,8 +57,11 @@ class Params(eqx.Module):
     :func:`jsnap.rollout_batch`): traced, differentiable, batchable.
 
     Attributes:
-        E: Young's modulus, MPa.   nu: Poisson's ratio, in (-1, 0.5).   rho: density, t/mm^3.
-        alpha: Rayleigh mass damping, 1/s.   beta: Rayleigh stiffness damping, s.
+        E: Young's modulus, MPa.
+        nu: Poisson's ratio, in (-1, 0.5).
+        rho: density, t/mm^3.
+        alpha: Rayleigh mass damping, 1/s.
+        beta: Rayleigh stiffness damping, s.
         friction: Coulomb coefficient between the rigid part and the deformable part.
     """
 

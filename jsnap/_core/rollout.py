@@ -53,12 +53,15 @@ class Result(eqx.Module):
         work: (n,) work of the rigid part on the deformable part during the step, N mm.
         plug: (n, 3) the rigid part's centre, mm.
         contact_force: (n, C, 3) force of the rigid part on the deformable part at each slot, N.
-        contact_point: (n, C, 3) slot positions, mm.   contact_active: (n, C) bool.
+        contact_point: (n, C, 3) slot positions, mm.
+        contact_active: (n, C) bool, the slot holds a contact.
         contact_index: (n, C) candidate point of each slot (index into
             ``model.samples.rest``).
         overflow: (n,) candidates that did not fit in the buffer (0 = none dropped).
-        residual, iterations: (n,) the contact solver's normalised KKT residual and iterations
-            (of the second solve where ``corrected``).
+        residual: (n,) the contact solver's normalised KKT residual (of the second solve where
+            ``corrected``).
+        iterations: (n,) the contact solver's iterations (of the second solve where
+            ``corrected``).
         corrected: (n,) bool, the step was solved a second time (predict-correct).
         flags: (n,) int32 bit mask of what went wrong in each step (``jsnap._core.status``):
             0 everywhere is a clean run; see :attr:`ok`, :meth:`status`, :meth:`check`.
@@ -90,7 +93,7 @@ class Result(eqx.Module):
 
     @property
     def ok(self):
-        """Bool (per rollout of a batch): no step has an error flag."""
+        """True where no step has an error flag (a bool per rollout of a batch)."""
         return jnp.all((self.flags & status.ERRORS) == 0, axis=-1)
 
     def status(self) -> str | list[str]:

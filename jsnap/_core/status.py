@@ -35,7 +35,19 @@ ERRORS = INVALID_PARAMS | NON_FINITE | ENERGY_CREATED | CONTACT_OVERFLOW
 
 
 class Flag(enum.IntFlag):
-    """The bits of ``Result.flags`` (``ERRORS``: the ones that make a result wrong)."""
+    """The bits of ``Result.flags``.
+
+    Errors, the result is not the physics asked for (``ERRORS`` is their union):
+
+    - ``INVALID_PARAMS``: a physical parameter is NaN or out of its range (outputs are NaN);
+    - ``NON_FINITE``: the step produced a non-finite state or force;
+    - ``ENERGY_CREATED``: the deformable part holds more energy than the rigid part's work put in;
+    - ``CONTACT_OVERFLOW``: more contact candidates than buffer slots (some were dropped).
+
+    Warning, the result is what was asked for, less tightly:
+
+    - ``NOT_CONVERGED``: the contact solve stopped at its iteration cap above 100x its tolerance.
+    """
 
     INVALID_PARAMS = INVALID_PARAMS
     NON_FINITE = NON_FINITE

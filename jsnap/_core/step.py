@@ -63,7 +63,8 @@ class State(eqx.Module):
     Attributes:
         x, v: (n,) the deformable part's coordinates (mm) and velocities (mm/s).
         plug, plug_vel: (3,) the rigid part's centre (mm) and velocity (mm/s).
-        target: (3,) last desired centre, mm.   t: time, s.
+        target: (3,) last desired centre, mm.
+        t: time, s.
         gamma: (P, 3) last contact force per candidate point, contact frame, N (the warm start
             of the contact solver: quasi-static contact changes little from step to step).
     """
@@ -413,15 +414,15 @@ def _step(model: Model, prepared: Prepared, state: State, control):
 def step(model: Model, prepared: Prepared, state: State, control) -> tuple[State, StepOutput]:
     """Advance one time step.
 
+    ``model`` and ``prepared`` are used in the state's dtype: cast them once
+    (``model.astype(dtype)``, ``prepared.astype(dtype)``) when stepping from a Python loop, or
+    each call casts them anew.
+
     Args:
         model: built scene.
         prepared: ``prepare(model, params)``.
         state: current :class:`State` (its dtype is the step's).
         control: (3,) desired centre of the rigid part at the end of the step, mm.
-
-    ``model`` and ``prepared`` are used in the state's dtype: cast them once
-    (``model.astype(dtype)``, ``prepared.astype(dtype)``) when stepping from a Python loop, or
-    each call casts them anew.
 
     Returns:
         ``(next_state, StepOutput)``; ``StepOutput.flags`` holds the step's

@@ -1,0 +1,196 @@
+"""The scene-file reference (``docs/scene-reference.md``), generated from the scene schema.
+
+Every scene key is declared once, in :data:`jsnap._geometry.scene.SCHEMA`; :func:`render` turns
+its user-visible keys (not the internal ones, nor the internal choices) into Markdown: an
+introduction (format, units, errors, the rules that involve several keys) and one table per
+section. The documentation's page is this function's output, committed, and a test checks that
+it is up to date::
+
+    python -m jsnap._apps.scene_reference > docs/scene-reference.md
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+
+from jsnap._geometry import scene as _scene
+from jsnap._geometry.scene import REQUIRED, SCHEMA, Key, default_scene_path
+
+__all__ = ["render"]
+
+COMMAND = "python -m jsnap._apps.scene_reference > docs/scene-reference.md"
+
+# What each section describes (the schema itself says what each key means).
+_SECTIONS = {
+    "connector": "The deformable part: the canonical cantilever snap hook. Coordinates in mm: the "
+    "arm spans x in [0, thickness] (x is the bending direction), y in [-width/2, width/2] and z "
+    "from its fixed root face z = 0 to the retention face at z = length; the hook protrudes by "
+    "the undercut in +x beyond the arm's outer face, and the rigid part comes down along -z.",
+    "material": "The deformable part's linear elastic material and its Rayleigh damping "
+    "(D = rayleigh_alpha M + rayleigh_beta K).",
+    "contact": "Frictional contact between the parts and its solver.",
+    "plug": "The preset rigid part: a block with rounded edges, sized from the connector.",
+    "motion": "How the rigid part moves: a straight insertion along -z from just above the hook.",
+    "solver": "The numerical model: time step, the deformable part's model and elements, the "
+    "rigid part's signed distance, precision.",
+}
+
+_TYPES = {float: "number", int: "integer", bool: "boolean", str: "string"}
+
+
+def _number(v: float | int) -> str:
+    """A number as TOML writes it, in its shortest form: ``1e-5``, ``0.3``, ``10.0``, ``64``."""
+    if isinstance(v, int):
+        return str(v)
+    text = f"{v:.12g}"
+    if "e" in text:
+        mantissa, exponent = text.split("e")
+        return f"{mantissa}e{int(exponent)}"
+    return text if "." in text else text + ".0"
+
+
+def _value(v) -> str:
+    if isinstance(v, bool):
+        return f"`{'true' if v else 'false'}`"
+    if isinstance(v, str):
+        return f'`"{v}"`'
+    return f"`{_number(v)}`"
+
+
+def _split_doc(doc: str) -> tuple[str, str]:
+    """``(meaning, how the default is derived)`` from a doc of the form "meaning; default: how"."""
+    for marker in ("; default: ", "; default "):
+        if marker in doc:
+            meaning, derived = doc.split(marker, 1)
+            return meaning, derived
+    return doc, ""
+
+
+def _allowed(spec: Key) -> str:
+    if spec.choices is not None:
+        return ", ".join(_value(c) for c in spec.choices)
+    if spec.kind is bool:
+        return "`true`, `false`"
+    return f"`{spec.range_text()}`"
+
+
+def _cell(text: str) -> str:
+    return text.replace("|", "\\|").replace("\n", " ")
+
+
+def _row(section: str, key: str, spec: Key) -> str:
+    meaning, derived = _split_doc(spec.doc)
+    if spec.default is REQUIRED:
+        default = "required"
+    elif spec.default is None:
+        default = f"derived: {derived}" if derived else "derived"
+    else:
+        default = _value(spec.default)
+    unit = spec.unit or ("–" if spec.kind in (float, int) else "")
+    cells = [f"`{key}`", _TYPES[spec.kind], unit, default, _allowed(spec), meaning]
+    return "| " + " | ".join(_cell(c) for c in cells) + " |"
+
+
+def _minimal_example() -> str:
+    """The required keys, with the shipped default scene's values, as TOML."""
+    shipped = tomllib.loads(default_scene_path().read_text())
+    lines = []
+    for section, keys in SCHEMA.items():
+        required = [k for k, spec in keys.items() if spec.default is REQUIRED and not spec.internal]
+        if not required:
+            continue
+        if lines:
+            lines.append("")
+        lines.append(f"[{section}]")
+        for key in required:
+            value = shipped[section][key]
+            text = f'"{value}"' if isinstance(value, str) else _number(value)
+            lines.append(f"{key} = {text}")
+    return "\n".join(lines)
+
+
+def _rules() -> list[str]:
+    """The checks of ``_check_consistency`` (and of the connector's own validation), in words."""
+    deflection = _scene._MAX_DEFLECTION_RATIO
+    return [
+        "**The connector must be a hook that can be built.** `connector.tip_thickness` may be at "
+        "most 4 times `connector.thickness`; angles so close to 0 degrees that the hook would be "
+        "infinitely tall, or a `connector.lead_angle` so close to 90 degrees that the lead ramp "
+        "vanishes, are refused.",
+        f"**The deflection must stay small.** `connector.undercut` may be at most {deflection:g} "
+        "times `connector.length`: the arm bends its tip by the undercut, and beyond that the tip "
+        f"would turn by more than ~{math.degrees(1.5 * deflection):.0f} degrees, outside the small "
+        "strains and rotations of a linear model and of any plastic snap-fit.",
+        "**The rigid part's fillet must fit.** `plug.fillet` may be at most half the plug's smallest "
+        "side (`plug.thickness`, `plug.width`, `plug.height`, with their derived defaults).",
+        f"**The motion must take at least {_scene.MIN_STEPS} time steps.** The stroke (given, or the "
+        "derived latching stroke) divided by `motion.speed`, twice that with `motion.withdraw`, "
+        f"divided by `solver.dt`: the contact events of a snap (ramp, flat, release) each need "
+        "several steps. The error gives the largest `solver.dt` that works.",
+        "**The elements must resolve the connector.** `solver.mesh_size` may be at most "
+        f"{_scene._COARSEST:g} times the thinnest feature of the connector (the smallest of its "
+        "`thickness`, `tip_thickness`, `width` and `undercut`), and a `SceneWarning` says when it is "
+        "larger than that feature itself (less than one element across it: a coarse, stiff model).",
+    ]
+
+
+def render() -> str:
+    """The scene reference as Markdown (the text of ``docs/scene-reference.md``)."""
+    out = [
+        "# Scene reference",
+        "",
+        f"<!-- Generated from the scene schema (jsnap/_geometry/scene.py) by `{COMMAND}`; "
+        "do not edit by hand. -->",
+        "",
+        "A scene is a TOML file: one table per section below, each holding the section's keys. "
+        "`jsnap.load_scene(path)` reads and validates one (`jsnap.load_scene()` with no path: the "
+        "shipped default scene, `jsnap/scenes/default.toml`), `jsnap simulate SCENE.toml` runs it, "
+        'and `scene.replace({"section.key": value})` changes keys of a loaded scene, validated '
+        "in the same way.",
+        "",
+        "Units everywhere: mm, N, MPa, s, tonne (density in t/mm³); angles in degrees. A key that "
+        "is absent takes its default; a default marked *derived* is computed from other keys as "
+        "its entry says.",
+        "",
+        "A scene needs only the required keys; with the shipped default scene's values:",
+        "",
+        "```toml",
+        _minimal_example(),
+        "```",
+        "",
+        "## Validation",
+        "",
+        "A scene is checked completely when it is loaded, before anything is built. Each of these "
+        "is an error (`jsnap.SceneError`) whose message names the key (`section.key`) and the "
+        "value:",
+        "",
+        "- an unknown section or key (the message lists the keys the section takes), or a "
+        "missing required key;",
+        "- a value of the wrong type (an integer is accepted where a number is expected, not "
+        "the other way round), a number that is not finite, a number outside the key's range "
+        "or a string that is not one of its choices.",
+        "",
+        "These rules involve several keys:",
+        "",
+        *[f"- {rule}" for rule in _rules()],
+    ]
+    for section, keys in SCHEMA.items():
+        visible = [(k, spec) for k, spec in keys.items() if not spec.internal]
+        if not visible:
+            continue
+        out += ["", f"## [{section}]", ""]
+        if section in _SECTIONS:
+            out += [_SECTIONS[section], ""]
+        out += [
+            "| key | type | unit | default | allowed | meaning |",
+            "|---|---|---|---|---|---|",
+            *[_row(section, k, spec) for k, spec in visible],
+        ]
+    return "\n".join(out) + "\n"
+
+
+if __name__ == "__main__":
+    import sys
+
+    sys.stdout.write(render())
