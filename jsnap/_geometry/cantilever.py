@@ -1,6 +1,6 @@
 """The canonical cantilever snap hook and its structured tetrahedral meshing (host side).
 
-The canonical cantilever (DESIGN.md §3) is a section polygon in the x–z plane extruded over the
+The canonical cantilever (the scene reference: `connector`) is a section polygon in the x–z plane extruded over the
 width ``y ∈ [−b/2, b/2]``; its root face ``z = 0`` is the fixed base. Everything here is plain
 numpy on the host, in float64. Units: mm (lengths), mm² (areas), mm³ (volumes), degrees
 (angles).
@@ -57,7 +57,7 @@ def _cot(degrees: float) -> float:
 
 @dataclass(frozen=True)
 class Cantilever:
-    """The canonical cantilever snap hook (DESIGN.md §3). Lengths in mm, angles in degrees.
+    """The canonical cantilever snap hook. Lengths in mm, angles in degrees.
 
     Attributes:
         length: L, arm length from the root (z = 0) to the retention face (z = L).
