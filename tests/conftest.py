@@ -24,6 +24,15 @@ os.environ.setdefault("JSNAP_XLA_CACHE", "0")
 ARM = dict(L=10.0, h=1.2, b=4.0)
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _release_compiled_programs():
+    """Drop JAX's compiled programs after each test module: the suite compiles hundreds, and each
+    keeps its machine code mapped; one process holding them all ran out of memory mappings
+    (XLA aborted while compiling, deep into the suite)."""
+    yield
+    jax.clear_caches()
+
+
 @pytest.fixture(autouse=True)
 def _keep_xla_flags():
     """The command line opts its process in to XLA's small-loop option (``XLA_FLAGS``, read by

@@ -23,6 +23,7 @@ import pytest
 import jsnap
 from jsnap._apps.cli import main as cli_main
 from jsnap._core import status
+from jsnap._core.params import FIELDS
 from jsnap._core.rollout import _result
 from jsnap._geometry.scene import SceneError, SceneWarning, with_internal
 
@@ -245,15 +246,17 @@ def test_transformations_outside_64_bit_mode_are_refused_with_the_remedy(model):
         jax.jit(lambda E: jsnap.rollout(model, model.params.replace(E=E)))(2200.0)
 
 
-@pytest.mark.parametrize(("name", "value"), BAD)
-def test_bad_parameters_are_flagged_under_jit(model, name, value):
-    @jax.jit
-    def run(v):
-        return jsnap.rollout(model, model.params.replace(**{name: v}))
-
+@pytest.fixture(scope="module")
+def under_jit(model):
+    """One compiled program for every parameter set: the values are traced."""
     with jax.enable_x64(True):
-        res = run(value)
-        good = run(float(getattr(model.params, name)))
+        run = jax.jit(lambda p: jsnap.rollout(model, p))
+        yield lambda p: run(p)
+
+
+@pytest.mark.parametrize(("name", "value"), BAD)
+def test_bad_parameters_are_flagged_under_jit(model, under_jit, name, value):
+    res = under_jit(model.params.replace(**{name: value}))
     flags = np.asarray(res.flags)
     assert np.all(flags & status.INVALID_PARAMS), "every step flagged"
     assert not bool(res.ok)
@@ -261,27 +264,33 @@ def test_bad_parameters_are_flagged_under_jit(model, name, value):
     assert res.status().startswith("step 1: invalid parameters")
     with pytest.raises(jsnap.SimulationError, match="invalid parameters"):
         res.check()
-    # The same program with a good value is clean.
+    # The same program with the scene's value is clean.
+    good = under_jit(model.params)
     assert bool(good.ok) and np.isfinite(np.asarray(good.insertion_force)).all()
 
 
-@pytest.mark.parametrize(("name", "value"), BAD)
-def test_bad_parameters_are_flagged_under_vmap(model, name, value):
-    good = float(getattr(model.params, name))
-
-    def force(v):
-        return jsnap.rollout(model, model.params.replace(**{name: v}))
-
+@pytest.fixture(scope="module")
+def under_vmap(model):
+    """Lane 0 the scene's parameters, lane i + 1 the scene's with BAD[i]: one vmap of a user's
+    function over them, and jsnap's own rollout_batch."""
+    columns = {f: [float(getattr(model.params, f))] * (len(BAD) + 1) for f in FIELDS}
+    for i, (name, value) in enumerate(BAD):
+        columns[name][i + 1] = value
+    batch = model.params.replace(**{f: jnp.array(v) for f, v in columns.items()})
     with jax.enable_x64(True):
-        res = jax.vmap(force)(jnp.array([good, value]))
-    assert res.status()[0] == "ok" and "invalid parameters" in res.status()[1]
-    # jsnap's own batched rollout flags the lane too, and runs the others.
-    res = jsnap.rollout_batch(model, model.params.replace(**{name: jnp.array([good, value])}))
-    ok = np.asarray(res.ok)
-    assert ok.tolist() == [True, False]
-    assert np.isfinite(np.asarray(res.insertion_force[0])).all()
-    assert np.isnan(np.asarray(res.insertion_force[1])).all()
-    assert res.status()[0] == "ok" and "invalid parameters" in res.status()[1]
+        users = jax.vmap(lambda p: jsnap.rollout(model, p))(batch)
+    return users, jsnap.rollout_batch(model, batch)
+
+
+@pytest.mark.parametrize(("lane", "bad"), list(enumerate(BAD, start=1)), ids=[f"{n}={v}" for n, v in BAD])
+def test_bad_parameters_are_flagged_under_vmap(under_vmap, lane, bad):
+    """Each lane's flags are its own: the bad lane is flagged and NaN, the good one runs."""
+    for res in under_vmap:
+        ok = np.asarray(res.ok)
+        assert ok[0] and not ok[lane]
+        assert np.isfinite(np.asarray(res.insertion_force[0])).all()
+        assert np.isnan(np.asarray(res.insertion_force[lane])).all()
+        assert res.status()[0] == "ok" and res.status()[lane].startswith("step 1: invalid parameters")
 
 
 def test_non_finite_steps_are_flagged_at_the_step(model):

@@ -58,7 +58,7 @@ def test_p2_converges_to_independent_reference_and_p1_locks():
     converged = d[2] + (d[2] - d[1]) / ((0.4 / 0.3) ** p - 1)
     assert 1.5 < p < 3.5
     # CalculiX's C3D20 value for the same arm converges to 0.7695 mm (an independent code).
-    # (docs/status.md: Richardson on 0.4/0.3/0.2 mm meshes gives 0.7696 mm.)
+    # (docs/validation.md: Richardson on 0.4/0.3/0.2 mm meshes gives 0.7696 mm.)
     assert converged == pytest.approx(0.7695, rel=1.5e-3)
     # The default scene's mesh size (0.8 mm): within 1% of the converged deflection.
     assert tip_deflection("P2", 0.8) == pytest.approx(0.7695, rel=1e-2)

@@ -38,7 +38,7 @@ def run(blocks, mat, dt, x0, v0, steps, f=None, refine=0):
 @pytest.mark.parametrize("E", [1.0, 2200.0, 2e5])
 def test_energy_conserved_without_damping(small_arm, E):
     """1e5 steps at dt = 1 ms, 1 MPa to 200 GPa: no growth, no decay beyond 1e-8 (measured
-    2e-11..9e-11, docs/status.md), with one refinement step per solve."""
+    2e-11..9e-11, docs/validation.md), with one refinement step per solve."""
     asm, blocks, _f, u = small_arm
     x0 = jnp.asarray(u[asm.free])
     _, _, e, e0 = jax.jit(run, static_argnums=(5, 7))(
@@ -144,7 +144,7 @@ NU = 0.35
 @pytest.fixture(scope="module")
 def p2_arm():
     """The same arm in P2 at 1.2 mm (1458 free dofs; (omega_max / omega_1)^2 = 1.5e6 at E = 2200
-    MPa): the plain dense path drifts ~1e-6 here over 1e5 steps (docs/status.md)."""
+    MPa): the plain dense path drifts ~1e-6 here over 1e5 steps (docs/validation.md)."""
     asm = _fem.assemble(mesh_box(ARM["h"], ARM["b"], ARM["L"], 1.2), "P2")
     f = _fem.traction_load(asm, lambda x: np.isclose(x[2], ARM["L"]), [1.0, 0.0, 0.0])
     u = _fem.solve_static(asm, 2200.0, NU, f)
@@ -382,7 +382,7 @@ def pmi_final(blocks, mat, dt, n, x0, f):
 @pytest.mark.parametrize("case", ["undamped", "damped"])
 def test_second_order_against_diffrax(tiny_arm, case):
     """Error at a fixed time for dt, dt/2, dt/4, dt/8 falls by 4 per halving (order 2 +- 0.2;
-    measured 2.00 +- 0.02, docs/status.md).
+    measured 2.00 +- 0.02, docs/validation.md).
 
     In the asymptotic regime every excited mode must have a small phase error
     (omega dt)^2 omega t / 12, so: undamped, a smooth start (the tip-load deflection projected

@@ -11,8 +11,9 @@ below any contact problem's. :func:`configure_xla_cpu` raises it to :data:`SMALL
 which holds the largest solver loop jsnap makes (the 64-slot float64 problem, ~0.3 MB) and no
 loop over a full mesh.
 
-Measured side by side (``benchmarks/xla_option.py``): the reduced scenes step 1.4-1.75x faster
-with it; the results move by round-off only (float64 rollouts agree to 3e-9 of the peak force).
+Measured side by side in fresh processes (``benchmarks/xla_option.py``): the shipped scene's
+reduced model steps 1.6-1.7x faster with it; the results move by round-off only (float64 forces
+agree to 5e-8 of the peak).
 
 The option belongs to the whole process: XLA reads ``XLA_FLAGS`` once, when JAX starts its CPU
 backend. So ``import jsnap`` does not set it; a program opts in by calling
@@ -61,7 +62,7 @@ def _backend_started() -> bool:
 def configure_xla_cpu() -> str:
     """Set XLA:CPU's small-loop option for this process: the contact solvers' loops are then
     compiled into single kernels instead of being run kernel by kernel, and the reduced model's
-    steps run 1.4-1.75x faster (``benchmarks/xla_option.py``).
+    steps run 1.6-1.7x faster (``benchmarks/xla_option.py``).
 
     The option (``xla_cpu_small_while_loop_byte_threshold``, set to :data:`SMALL_LOOP_BYTES`
     through ``XLA_FLAGS``) belongs to the whole process and is read once, when JAX starts its
@@ -80,7 +81,7 @@ def configure_xla_cpu() -> str:
     if _backend_started():
         warnings.warn(
             "jsnap.configure_xla_cpu() was called after JAX started its CPU backend, so XLA's "
-            "small-loop option cannot be set any more: contact-heavy steps run ~1.4-1.7x slower. Call "
+            "small-loop option cannot be set any more: contact-heavy steps run ~1.6x slower. Call "
             f"it before the first JAX computation, or set XLA_FLAGS='{_EXTRA}{SMALL_LOOP_OPTION}="
             f"{SMALL_LOOP_BYTES}'.",
             stacklevel=2,

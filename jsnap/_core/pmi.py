@@ -19,7 +19,7 @@ Round-off. A factorised or inverted S is, in floating point, the exact inverse o
 the system with a spurious damping ``dS``: every step changes the energy by
 ``-T vbar' dS vbar``, which keeps its sign on a trajectory that keeps returning to the same
 modes, so the energy drifts *linearly* in the number of steps (after 1e5 steps: 1e-8..6e-8 on
-a 270-dof P1 arm, ~1e-6 on a 1458-dof P2 arm; docs/status.md). Two remedies, both the same
+a 270-dof P1 arm, ~1e-6 on a 1458-dof P2 arm; docs/validation.md). Two remedies, both the same
 discrete equations:
 
 * ``pmi_step(..., refine=1)``: one step of iterative refinement with the residual
