@@ -37,7 +37,8 @@ the top-level ``headline`` is the CPU one (a GPU's is also ``headline_gpu``).
 its while loop runs to the slowest lane as APGD's does (docs/contact.md). Writes
 ``throughput_admm.{json,png}`` or ``throughput_spg.{json,png}``.
 ``--quick`` (CI): batches 1 and 4, 10 steps, the default series only, no saturation check.
-Writes benchmarks/results/throughput{,_quick}.{json,png}.
+Writes benchmarks/results/throughput{,_quick}.{json,png} (the chart of a GPU run as
+throughput_gpu.png).
 """
 
 from __future__ import annotations
@@ -88,11 +89,13 @@ E_RANGE, MU_RANGE, OFFSET_RANGE = (1800.0, 2600.0), (0.1, 0.5), (-0.4, 0.4)  # M
 
 
 def lanes(model, n: int, seed: int = 0):
-    """Batched Params (n,) and plug offsets (n, 3) in mm: lane i of a fixed random draw."""
+    """Batched Params (n,) and plug offsets (n, 3) in mm: lane i of a fixed random draw (of
+    POOL lanes, or of n where a GPU run asks for more)."""
     rng = np.random.default_rng(seed)
-    E = rng.uniform(*E_RANGE, POOL)[:n]
-    mu = rng.uniform(*MU_RANGE, POOL)[:n]
-    dx = rng.uniform(*OFFSET_RANGE, POOL)[:n]
+    pool = max(POOL, n)
+    E = rng.uniform(*E_RANGE, pool)[:n]
+    mu = rng.uniform(*MU_RANGE, pool)[:n]
+    dx = rng.uniform(*OFFSET_RANGE, pool)[:n]
     p = model.params
     params = jsnap.Params(
         E=jnp.asarray(E),
@@ -284,7 +287,7 @@ def _main(argv=None):
         batches, series = [1, 4], dict(list(SERIES.items())[:1])
     else:
         # Every 4x (each batch size is a compile): the 30-minute budget of `jsnap bench`.
-        batches = [4**k for k in range(10) if 4**k <= min(a.max_batch, POOL)]
+        batches = [4**k for k in range(10) if 4**k <= a.max_batch]
         series = {**SERIES, **(EXTRA_SERIES[extra] if extra else {})}
     load = [os.getloadavg()[0]]
     result = {"series": {}}
@@ -377,7 +380,8 @@ def _main(argv=None):
         f"float32), {n_steps} steps of the insertion per rollout\n"
         f"device: {result['device']}; {result['machine']}"
     )
-    chart(result, title, OUT / f"{stem}.png")
+    # The chart of the platform that ran (a GPU's beside the CPU's, not over it).
+    chart(result, title, OUT / f"{stem}{'' if dev.platform == 'cpu' else '_' + dev.platform}.png")
     print(f"wrote {path} in {result['wall_seconds']:.0f} s", flush=True)
 
 
