@@ -2,9 +2,9 @@
 registered names). Scripts import it as ``from _common import ...`` (their folder is on
 ``sys.path`` when run as ``python benchmarks/NAME.py`` and under ``jsnap bench``).
 
-Since the redesign the shipped scene's defaults are the reduced model and a per-method rollout
-dtype (float64 for the full model, float32 for the reduced and segmented ones), and several keys are internal. The benchmarks
-state what they measure instead of leaning on defaults: :data:`FULL` and :data:`FLOAT32` are the
+The shipped scene's defaults are the reduced model and a per-method rollout dtype (float64 for
+the full model, float32 for the reduced and segmented ones), and several keys are internal. The
+benchmarks state what they measure instead of leaning on defaults: :data:`FULL` and :data:`FLOAT32` are the
 choices the scene made when the committed results were taken (the full model, float32
 rollouts), and :func:`load_scene` applies changes that may include internal keys.
 """

@@ -1,15 +1,15 @@
 """Speed against accuracy: insertion-force error against a fine reference, plotted against the
-steady rollout rate, over the solver settings a user can choose (issue 6, item 2).
+steady rollout rate, over the solver settings a user can choose.
 
     python benchmarks/pareto.py [--quick] [--reference-mesh MM]
 
 Reference: the default scene, full P2 model, in float64 with a quarter of the default time
 step (``solver.dt`` = 0.25 ms; the finest step tested is 0.5 ms) on the default 0.8 mm mesh.
-Since session 19 the reference steps the full model in modal coordinates (``solver.method`` =
+The reference steps the full model in modal coordinates (the internal ``solver.method`` =
 ``modal``: the same discrete equations, ``docs/modal.md``), twice as fast and without the
 dense factorisation. At dt 1 ms the two agree to 6e-8 of the peak; at this step the contact
 chatters and their round-off puts the snap one 0.25 ms step apart (0.47 % RMSE of the peak,
-as much as round-off changes of the code moved the dense reference between sessions). A
+as much as round-off changes of the code move the dense reference). A
 finer mesh was the first choice, but on this machine (2 CPU cores) the 0.6 mm P2 model
 (11 070 dof) takes ~3 min for its PMI factorisation alone and 4.5-7 min in all, most of what
 the whole benchmark may take. Measured once (float64, dt 0.5 ms, both meshes): the 0.8 mm
@@ -167,7 +167,7 @@ def run(scene, timed: bool = True) -> dict:
         if model.method != "modal":
             row["orders"] = list(model.part.orders)
     if timed and first > SLOW_FIRST_CALL_S:
-        # A slow rollout (none since session 7; the exact mesh SDF took ~40 s) is not run again:
+        # A slow rollout (the exact mesh SDF's could take ~40 s) is not run again:
         # its compile time is that of a two-step rollout (the same scan body, compiled anew for
         # the other length).
         compile_s = two_step_compile_seconds(model, prepared)

@@ -1,4 +1,4 @@
-"""Shared fixtures: meshes and assemblies are built once per session (JAX compiles are slow).
+"""Shared fixtures: meshes and assemblies are built once per test run (JAX compiles are slow).
 
 jsnap changes no process-wide JAX setting: tests of the public API run as a user's program does,
 with JAX's default 32-bit mode. Tests of internal kernels that compute in float64 on their own

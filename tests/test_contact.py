@@ -285,7 +285,7 @@ def _assert_solves(W, q, mu, mask, sol):
     The natural residual bounds the other terms only up to a problem-dependent factor (Moreau:
     ``γ·u/L = r·(γ − p°)``, with ``r`` the residual vector and ``p°`` the polar part of
     ``γ − u/L``). Measured over 1200 random problems each (seeds 0-149 and 100000, C = 8 and 24,
-    every kind; session 16): dual ≤ 1.50 TOL for both solvers; complementarity up to 2.10 TOL
+    every kind): dual ≤ 1.50 TOL for both solvers; complementarity up to 2.10 TOL
     (APGD) and 2.27 TOL (ADMM), 1 and 3 of them above 2 TOL. Hence 3 TOL for it."""
     assert bool(sol.converged)
     gamma = np.asarray(sol.gamma)

@@ -123,7 +123,7 @@ def test_spg_takes_fewer_iterations_than_apgd(default_coarse, tight_coarse):
     average (APGD 328). Its distance from the tight curve depends on round-off: the solves stop
     at the 1e-6 residual with the soft modes (the force distribution along a line contact) not
     resolved, and where in that valley SPG's long steps leave each solve moves with the last bits
-    of the step size L. Measured (session 23, L scaled by 1 + ε before the solve): RMSE 0.30 %
+    of the step size L. Measured (L scaled by 1 + ε before the solve): RMSE 0.30 %
     of the peak at ε = 0, 2.17 % at 1e-12, 1.97 % at -1e-9, 0.21 % at 1e-6; APGD 0.30 % at every
     ε. Hence the bound here is the spread's, not APGD's accuracy (docs/contact.md)."""
     _, model, res = _run({"contact.solver": "spg"})

@@ -531,9 +531,7 @@ def _times_line(root: Path, quick: bool) -> str | None:
 #   quick scripts that run for a while (calculix_compare, design_guide, stability) more than it
 #   saves. LLVM's optimisations reorder float32 arithmetic, so the quick curves differ from the
 #   full runs' by round-off (a contact event can move by a step).
-# Whole quick run, 2 workers: 186 and 188 s with the emitters flag only (session 8), 169 s twice
-# with both (session 9). The full runs, whose timings are the headline numbers, keep XLA's
-# defaults for these two.
+# The full runs, whose timings are the headline numbers, keep XLA's defaults for these two.
 # And XLA's small-loop option (jsnap._apps.xla), which the scripts opt into themselves
 # (jsnap.configure_xla_cpu() before their first computation): the quick scripts share worker
 # processes and XLA reads its flags once per process, so a script's own opt-in would come too
@@ -676,11 +674,9 @@ def main(names: list[str], quick: bool, list_only: bool, jobs: int | None = None
     if jobs is not None and jobs < 1:
         print(f"jsnap bench: --jobs {jobs}: give a count >= 1", file=sys.stderr)
         return 2
-    # Quick: two workers by default (compilation, 1.3x faster here). Full: one. Two at a time
-    # ran the untimed scripts hardly faster on this 2-core machine, memory-bound as they are
-    # (session 6: 830 s, about the sum of their times alone; session 5: 933 s against ~1035 s;
-    # session 15: 922 s against session 14's 925 s one at a time), and stretched each ~2x,
-    # incidental timings included.
+    # Quick: two workers by default (compilation, 1.3x faster on 2 cores). Full: one. Two at a
+    # time run the untimed scripts hardly faster on a 2-core machine, memory-bound as they are
+    # (about the sum of their times alone), and stretch each ~2x, incidental timings included.
     jobs = jobs or (min(2, os.cpu_count() or 1) if quick else 1)
     todo = [known[n] for n in names] if names else benches
     t_all = time.perf_counter()

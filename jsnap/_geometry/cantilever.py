@@ -1,8 +1,8 @@
 """The canonical cantilever snap hook and its structured tetrahedral meshing (host side).
 
-The canonical cantilever (the scene reference: `connector`) is a section polygon in the x–z plane extruded over the
-width ``y ∈ [−b/2, b/2]``; its root face ``z = 0`` is the fixed base. Everything here is plain
-numpy on the host, in float64. Units: mm (lengths), mm² (areas), mm³ (volumes), degrees
+The canonical cantilever (the scene reference: ``connector``) is a section polygon in the x–z
+plane extruded over the width ``y ∈ [−b/2, b/2]``; its root face ``z = 0`` is the fixed base.
+Everything here is plain numpy on the host, in float64. Units: mm (lengths), mm² (areas), mm³ (volumes), degrees
 (angles).
 
 Meshing (:func:`mesh_cantilever`): the section is cut into structured quadrilateral blocks,
