@@ -382,15 +382,25 @@ class _JoinedSegments(_ContactNodeRows):
             ``V`` the identity for :class:`SegmentedPart`).
         coupling_rows: (3p, r) ``Dg V``: the gap of each joined pair of copies, per component.
         coupling: (2,) interface spring stiffness k_c (N/mm) and damping b_c (N s/mm).
+        out_kl, out_km, out_m1: see :class:`AbstractPart`.
+        node_rows, sample_*, stencil_*: see :class:`_ContactNodeRows`.
         orders: static, coordinates per segment (segment 0 is the contact segment).
     """
 
-    kl: eqx.AbstractVar[jax.Array]
-    km: eqx.AbstractVar[jax.Array]
-    m1: eqx.AbstractVar[jax.Array]
-    coupling_rows: eqx.AbstractVar[jax.Array]
-    coupling: eqx.AbstractVar[jax.Array]
-    orders: eqx.AbstractVar[tuple[int, ...]]
+    kl: jax.Array
+    km: jax.Array
+    m1: jax.Array
+    coupling_rows: jax.Array
+    coupling: jax.Array
+    out_kl: jax.Array
+    out_km: jax.Array
+    out_m1: jax.Array
+    node_rows: jax.Array
+    sample_nodes: jax.Array
+    sample_weights: jax.Array
+    stencil_nodes: jax.Array
+    stencil_weights: jax.Array
+    orders: tuple[int, ...] = eqx.field(static=True)
 
     factored: ClassVar[bool] = True
 
@@ -454,21 +464,7 @@ class SegmentedPart(_JoinedSegments):
         Others: see :class:`_JoinedSegments`.
     """
 
-    kl: jax.Array
-    km: jax.Array
-    m1: jax.Array
-    coupling_rows: jax.Array
-    coupling: jax.Array
-    out_kl: jax.Array
-    out_km: jax.Array
-    out_m1: jax.Array
-    node_rows: jax.Array
-    sample_nodes: jax.Array
-    sample_weights: jax.Array
-    stencil_nodes: jax.Array
-    stencil_weights: jax.Array
-    recon_index: jax.Array
-    orders: tuple[int, ...] = eqx.field(static=True)
+    recon_index: jax.Array = eqx.field(kw_only=True)
 
     def free_displacement(self, x):
         return x[self.recon_index]
@@ -483,21 +479,7 @@ class ReducedPart(_JoinedSegments):
         Others: see :class:`_JoinedSegments`.
     """
 
-    kl: jax.Array
-    km: jax.Array
-    m1: jax.Array
-    coupling_rows: jax.Array
-    coupling: jax.Array
-    out_kl: jax.Array
-    out_km: jax.Array
-    out_m1: jax.Array
-    node_rows: jax.Array
-    sample_nodes: jax.Array
-    sample_weights: jax.Array
-    stencil_nodes: jax.Array
-    stencil_weights: jax.Array
-    recon: jax.Array
-    orders: tuple[int, ...] = eqx.field(static=True)
+    recon: jax.Array = eqx.field(kw_only=True)
 
     def free_displacement(self, x):
         return self.recon @ x

@@ -34,9 +34,10 @@ class SimulationError(RuntimeError):
     """A rollout's result is not the physics asked for (see :meth:`Result.check`)."""
 
 
-class Result(eqx.Module):
-    """A rollout's history; per-step arrays have the step axis first (n = steps), after the
-    batch axis of :func:`rollout_batch`.
+class Result(StepOutput):
+    """A rollout's history: every step's :class:`StepOutput` stacked, with the time, the travel
+    and (on request) the coordinates. Per-step arrays have the step axis first (n = steps),
+    after the batch axis of :func:`rollout_batch`.
 
     Attributes:
         t: (n,) time at the end of each step, s.
@@ -70,25 +71,9 @@ class Result(eqx.Module):
             otherwise, which ``model.part.free_displacement`` maps to the free dofs.
     """
 
+    # The fields of every step (StepOutput's, stacked), and:
     t: jax.Array
     travel: jax.Array
-    insertion_force: jax.Array
-    lateral_force: jax.Array
-    base_force: jax.Array
-    base_moment: jax.Array
-    coupling_force: jax.Array
-    energy: jax.Array
-    work: jax.Array
-    plug: jax.Array
-    contact_force: jax.Array
-    contact_point: jax.Array
-    contact_active: jax.Array
-    contact_index: jax.Array
-    overflow: jax.Array
-    residual: jax.Array
-    iterations: jax.Array
-    corrected: jax.Array
-    flags: jax.Array
     x: jax.Array | None
 
     @property
