@@ -37,6 +37,7 @@ DOCS = ROOT / "docs"
 # The site's table of contents, in this order (docs/index.md).
 PAGES = [
     "guide",
+    "own-connector",
     "scene-reference",
     "api",
     "architecture",

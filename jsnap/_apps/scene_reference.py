@@ -27,16 +27,27 @@ _SECTIONS = {
     "arm spans x in [0, thickness] (x is the bending direction), y in [-width/2, width/2] and z "
     "from its fixed root face z = 0 to the retention face at z = length; the hook protrudes by "
     "the undercut in +x beyond the arm's outer face, and the rigid part comes down along -z.",
+    "part": "The deformable part from a file, instead of [connector] (see "
+    "[your own connector](own-connector.md)): tetrahedra, or a closed surface that jsnap tet-meshes "
+    "with gmsh at solver.mesh_size; its fixed region a named group of the file or a box. Paths are "
+    "relative to the scene file.",
+    "rigid": "The rigid part from a file, instead of [plug]: a closed surface whose coordinates are "
+    "its pose at t = 0 in the frame of the fixed base; its frame's origin is its volume centroid. "
+    "Its signed distance is the exact mesh distance (solver.sdf = \"mesh\", the default here) or a "
+    "network trained once and cached (\"neural\").",
     "material": "The deformable part's linear elastic material and its Rayleigh damping "
     "(D = rayleigh_alpha M + rayleigh_beta K).",
     "contact": "Frictional contact between the parts and its solver.",
     "plug": "The preset rigid part: a block with rounded edges, sized from the connector.",
-    "motion": "How the rigid part moves: a straight insertion along -z from just above the hook.",
+    "motion": "How the rigid part moves: a straight insertion (along -z from just above the hook "
+    "for the preset plug, or along motion.direction), or a path of poses (motion.waypoints or a "
+    "motion.trajectory CSV file) that also turns it. The orientation follows the path under either "
+    "control; impedance control couples the position.",
     "solver": "The numerical model: time step, the deformable part's model and elements, the "
     "rigid part's signed distance, precision.",
 }
 
-_TYPES = {float: "number", int: "integer", bool: "boolean", str: "string"}
+_TYPES = {float: "number", int: "integer", bool: "boolean", str: "string", list: "array"}
 
 
 def _number(v: float | int) -> str:
@@ -98,7 +109,7 @@ def _minimal_example() -> str:
     lines = []
     for section, keys in SCHEMA.items():
         required = [k for k, spec in keys.items() if spec.default is REQUIRED and not spec.internal]
-        if not required:
+        if not required or section not in shipped:  # the optional sections of parts from files
             continue
         if lines:
             lines.append("")
@@ -128,6 +139,17 @@ def _rules() -> list[str]:
         "derived latching stroke) divided by `motion.speed`, twice that with `motion.withdraw`, "
         f"divided by `solver.dt`: the contact events of a snap (ramp, flat, release) each need "
         "several steps. The error gives the largest `solver.dt` that works.",
+        "**The parts are presets or files, one of each.** `[part]` replaces `[connector]` and "
+        "needs `[rigid]` (the preset plug is sized from the connector); `[rigid]` replaces `[plug]`. "
+        "`[part]` takes exactly one of `part.fixed` and `part.fixed_box`; `solver.sdf = \"analytic\"` "
+        "is the preset plug's formula and is refused with a `[rigid]` file, which also needs "
+        "`motion.stroke` for a straight insertion. The files named must exist (paths relative to the "
+        "scene file).",
+        "**The motion is straight or a path.** `motion.waypoints` and `motion.trajectory` exclude "
+        "each other and the straight insertion's `direction`, `stroke` and `withdraw`; poses start at "
+        "t = 0, their times increase and their rotations are unit quaternions (within 1e-6). The "
+        "insertion axis (the direction of `insertion_force`) is `motion.direction`, or the direction "
+        "of a path's largest displacement from its start.",
         "**The elements must resolve the connector.** `solver.mesh_size` may be at most "
         f"{_scene._COARSEST:g} times the thinnest feature of the connector (the smallest of its "
         "`thickness`, `tip_thickness`, `width` and `undercut`), and a `SceneWarning` says when it is "

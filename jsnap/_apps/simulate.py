@@ -3,7 +3,8 @@
 Outputs in the ``--out`` folder (checked before anything is built):
 
 - ``forces.csv``: per step, time, travel, insertion force, the base wrench (force and moment),
-  the drive's force, energy and the step's status flags;
+  the drive's wrench (force and moment), the rigid part's pose (centre and unit quaternion),
+  energy and the step's status flags;
 - ``forces.png``: the force curves against travel and time;
 - ``vtu/socket.pvd`` with ``socket_*.vtu``: the deformed part for ParaView;
 - ``summary.json``: the strict-JSON summary (also printed with ``--json``).
@@ -53,13 +54,16 @@ def check_out_dir(out) -> Path:
     return path
 
 
-def design_guide_force(scene) -> float:
-    """Snap-fit design-guide mating force W = P (mu + tan a) / (1 - mu tan a), N.
+def design_guide_force(scene) -> float | None:
+    """Snap-fit design-guide mating force W = P (mu + tan a) / (1 - mu tan a), N, of the
+    cantilever preset (None for a part from a file).
 
     P = b h^2 E eps / (6 L) with eps = 1.5 h y / L^2 (constant arm) or h y / (1.09 L^2) (arm
     tapered to h/2); a beam-theory estimate (see the validation page for how far it is off).
     """
     c, m = scene["connector"], scene["material"]
+    if not c:
+        return None
     L, h, b, y = c["length"], c["thickness"], c["width"], c["undercut"]
     h_tip = c["tip_thickness"] or h
     eps = y * h / (1.09 * L**2) if abs(h_tip - h / 2) < 1e-9 else 1.5 * h * y / L**2
@@ -74,7 +78,7 @@ def _finite(x):
     return x if math.isfinite(x) else None
 
 
-def plot_forces(res, out: Path, guide: float, title: str) -> Path:
+def plot_forces(res, out: Path, guide: float | None, title: str) -> Path:
     """``forces.png``: insertion, base and lateral force against travel and time."""
     import matplotlib
 
@@ -85,7 +89,10 @@ def plot_forces(res, out: Path, guide: float, title: str) -> Path:
     t = np.asarray(res.t) * 1e3
     F = np.asarray(res.insertion_force)
     fig, ax = plt.subplots(1, 2, figsize=(12, 4.5))
-    for a, xv, xl in ((ax[0], travel, "travel of the rigid part along -z (mm)"), (ax[1], t, "time (ms)")):
+    for a, xv, xl in (
+        (ax[0], travel, "travel of the rigid part along its insertion axis (mm)"),
+        (ax[1], t, "time (ms)"),
+    ):
         a.plot(xv, F, label="insertion force (N)", lw=1.6)
         a.plot(
             xv, np.linalg.norm(np.asarray(res.base_force), axis=1), label="|base force| (N)", lw=1.0, alpha=0.8
@@ -93,7 +100,8 @@ def plot_forces(res, out: Path, guide: float, title: str) -> Path:
         a.plot(
             xv, np.asarray(res.lateral_force), label="lateral force on the rigid part, x (N)", lw=1.0, alpha=0.8
         )
-        a.axhline(guide, color="k", ls="--", lw=0.8, label=f"design-guide mating force {guide:.2f} N")
+        if guide is not None:
+            a.axhline(guide, color="k", ls="--", lw=0.8, label=f"design-guide mating force {guide:.2f} N")
         a.axhline(0, color="0.6", lw=0.5)
         a.set_xlabel(xl)
         a.set_ylabel("force (N)")
@@ -128,6 +136,9 @@ def write_forces_csv(res, path: Path) -> Path:
             np.asarray(res.base_force),
             np.asarray(res.base_moment),
             np.asarray(res.coupling_force),
+            np.asarray(res.coupling_moment),
+            np.asarray(res.plug),
+            np.asarray(res.plug_rotation),
             np.asarray(res.energy),
             np.asarray(res.flags),
         ]
@@ -135,7 +146,8 @@ def write_forces_csv(res, path: Path) -> Path:
     header = (
         "t_s,travel_mm,insertion_force_N,lateral_force_N,base_fx_N,base_fy_N,base_fz_N,"
         "base_mx_Nmm,base_my_Nmm,base_mz_Nmm,coupling_fx_N,coupling_fy_N,coupling_fz_N,"
-        "energy_Nmm,flags"
+        "coupling_mx_Nmm,coupling_my_Nmm,coupling_mz_Nmm,rigid_x_mm,rigid_y_mm,rigid_z_mm,"
+        "rigid_qw,rigid_qx,rigid_qy,rigid_qz,energy_Nmm,flags"
     )
     np.savetxt(path, cols, delimiter=",", header=header, comments="", fmt="%.8g")
     return path
@@ -240,6 +252,10 @@ def simulate(args) -> int:
         else None,
         "min_insertion_force_N": _finite(np.nanmin(F)) if np.isfinite(F).any() else None,
         "design_guide_mating_force_N": guide,
+        "insertion_axis": np.asarray(model.axis).tolist(),
+        "peak_base_moment_Nmm": _finite(np.nanmax(np.linalg.norm(np.asarray(res.base_moment), axis=1)))
+        if np.isfinite(np.asarray(res.base_moment)).any()
+        else None,
         "max_contact_overflow": int(np.max(np.asarray(res.overflow))),
         "max_solver_residual": _finite(np.nanmax(residual)) if np.isfinite(residual).any() else None,
         "outputs": {"csv": str(csv), "png": str(png), "pvd": str(pvd)},
@@ -257,7 +273,8 @@ def simulate(args) -> int:
             rate, real = summary["steps_per_second"], summary["real_time_factor"]
             print(
                 f"jsnap: {F.size} steps ({model.method} model, {model.n_dof} dof), peak insertion force "
-                f"{peak:.3f} N at {at:.3f} mm (design guide {guide:.3f} N); {rate:.0f} steps/s "
+                f"{peak:.3f} N at {at:.3f} mm{'' if guide is None else f' (design guide {guide:.3f} N)'}; "
+                f"{rate:.0f} steps/s "
                 f"({real:.1f}x real time); build {t_build:.1f} s, compile {t_compile:.1f} s; wrote {out}/"
             )
     if status != "ok":

@@ -106,10 +106,11 @@ def _same_pattern(*mats: sp.spmatrix) -> list[sp.csr_matrix]:
 
 
 def assemble(mesh: TetMesh, element: str = "P2") -> Assembly:
-    """Assemble K_lam, K_mu, M1 for ``mesh`` with P1 or P2 tetrahedra, clamped at z = 0.
+    """Assemble K_lam, K_mu, M1 for ``mesh`` with P1 or P2 tetrahedra, clamped at its fixed
+    region (``mesh.base_nodes``; a P2 edge node is fixed when both its ends are).
 
     Args:
-        mesh: tetrahedral mesh in mm with its base nodes marked.
+        mesh: tetrahedral mesh in mm with its fixed nodes marked.
         element: ``"P1"`` (linear; locks in bending on coarse meshes) or ``"P2"`` (quadratic).
     """
     if element not in _ELEMENTS:
@@ -129,8 +130,14 @@ def assemble(mesh: TetMesh, element: str = "P2") -> Assembly:
     scalar = skfem.Basis(skmesh, _ELEMENTS[element]())
     cells = scalar.element_dofs.T.copy()  # (m, 4) or (m, 10), skfem edge order = VTK tetra10
 
-    base = np.zeros(n_nodes, dtype=bool)
-    base[np.isclose(nodes[:, 2], 0.0, atol=1e-9)] = True
+    n_vert = skmesh.p.shape[1]
+    vertex = np.zeros(n_vert, dtype=bool)
+    vertex[mesh.base_nodes] = True
+    base = vertex
+    if element == "P2":
+        base = np.concatenate([vertex, vertex[skmesh.edges[0]] & vertex[skmesh.edges[1]]])
+    if base.size != n_nodes:
+        raise RuntimeError("unexpected scikit-fem node numbering (vertices, then edges)")
     fixed = np.flatnonzero(np.repeat(base, 3))
     free = np.flatnonzero(~np.repeat(base, 3))
     return Assembly(element, mesh, nodes, cells, K_lam, K_mu, M1, fixed, free, basis)

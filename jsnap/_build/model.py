@@ -21,7 +21,14 @@ from jsnap._build.fem import Assembly, assemble, output_rows, sparse_blocks
 from jsnap._build.modal import modal_part
 from jsnap._build.neural_sdf import load_or_train
 from jsnap._build.reduce import build_part
-from jsnap._build.samples import STENCIL_SIDE, STENCIL_WIDTH, locate_on_faces, reachable_faces, section_samples
+from jsnap._build.samples import (
+    STENCIL_SIDE,
+    STENCIL_WIDTH,
+    locate_on_faces,
+    reachable_faces,
+    section_samples,
+    surface_samples,
+)
 from jsnap._build.sdf import mesh_sdf_from_trimesh
 from jsnap._core.contact import ADMM, APGD, PGS, SPG
 from jsnap._core.drive import ImpedanceDrive, PositionDrive
@@ -30,9 +37,18 @@ from jsnap._core.params import Params
 from jsnap._core.parts import FullPart
 from jsnap._core.sdf import BoundedSDF, RoundedBoxSDF
 from jsnap._geometry.cantilever import mesh_cantilever
-from jsnap._geometry.motion import straight_insertion
+from jsnap._geometry.motion import quat_matrix, sample_poses, straight_insertion, straight_poses
+from jsnap._geometry.part import load_part, load_rigid
 from jsnap._geometry.plug import default_plug
-from jsnap._geometry.scene import Scene, SceneError, connector_geometry, motion_stroke
+from jsnap._geometry.scene import (
+    Scene,
+    SceneError,
+    connector_geometry,
+    motion_keyposes,
+    motion_stroke,
+    scene_file,
+    sdf_kind,
+)
 
 __all__ = ["BuildError", "BuildReport", "build", "build_model", "params_from_scene"]
 
@@ -145,24 +161,119 @@ def check_memory(n_dof: int, method: str, available: int | None = None) -> int:
     return estimate
 
 
-def _contact_candidates(scene: Scene, geom, mesh, asm: Assembly, plug, stroke: float):
+@dataclass
+class _Rigid:
+    """The rigid part as the build needs it: its surface in its own frame, a box about its
+    frame's origin that holds it, the rounded box's radius (preset plug), its start centre."""
+
+    mesh: object
+    half: np.ndarray
+    radius: float | None
+    start: np.ndarray
+
+
+@dataclass
+class _Geometry:
+    """What the geometry layer gives the build: the part's mesh (its fixed region in
+    ``base_nodes``), the rigid part, the desired poses (n + 1, 3 or 7), the insertion axis and
+    the connector when the part is the canonical cantilever."""
+
+    mesh: object
+    rigid: _Rigid
+    poses: np.ndarray
+    axis: np.ndarray
+    cantilever: object | None
+
+
+def _geometry(scene: Scene) -> _Geometry:
+    """The scene's deformable part, rigid part and motion (presets or files)."""
+    s, m = scene["solver"], scene["motion"]
+    geom = connector_geometry(scene) if scene["connector"] else None
+    if geom is not None:
+        mesh = mesh_cantilever(geom, s["mesh_size"])
+    else:
+        p = scene["part"]
+        mesh = load_part(
+            scene_file(scene, "part.mesh"),
+            units=p["units"],
+            fixed=p["fixed"],
+            fixed_box=p["fixed_box"],
+            mesh_size=s["mesh_size"],
+        )
+    if scene["rigid"]:
+        surface = load_rigid(scene_file(scene, "rigid.mesh"), units=scene["rigid"]["units"])
+        rigid = _Rigid(surface.mesh, surface.half, None, surface.centroid)
+    else:
+        plug = default_plug(scene["plug"], geom)
+        rigid = _Rigid(plug.mesh(), plug.half, plug.radius, plug.start)
+    keys = motion_keyposes(scene)
+    if keys is None:
+        d = np.asarray(m["direction"] or [0.0, 0.0, -1.0], np.float64)
+        d = d / np.linalg.norm(d)
+        stroke = motion_stroke(scene, geom)
+        if m["direction"] is None:
+            poses = straight_insertion(rigid.start, m["speed"], stroke, m["withdraw"], s["dt"])
+        else:
+            poses = straight_poses(rigid.start, d, m["speed"], stroke, m["withdraw"], s["dt"])[:, :3]
+    else:
+        poses = sample_poses(*keys, rigid.start, s["dt"])
+        net = poses[np.argmax(np.linalg.norm(poses[:, :3] - poses[0, :3], axis=1)), :3] - poses[0, :3]
+        if np.linalg.norm(net) < 1e-9:
+            raise SceneError("the motion's waypoints never move the rigid part's centre: no insertion axis")
+        d = net / np.linalg.norm(net)
+    return _Geometry(mesh, rigid, poses, d, geom)
+
+
+def _swept_box(rigid: _Rigid, poses: np.ndarray):
+    """Bounding box (lo, hi) of the rigid part's surface over all its poses, mm."""
+    v = np.asarray(rigid.mesh.vertices, np.float64)
+    every = max(1, poses.shape[0] // 200)
+    chosen = np.concatenate([poses[::every], poses[-1:]])
+    if poses.shape[1] == 7:
+        world = np.einsum("kij,vj->kvi", quat_matrix(chosen[:, 3:]), v) + chosen[:, None, :3]
+    else:
+        world = v[None] + chosen[:, None, :3]
+    return world.reshape(-1, 3).min(axis=0), world.reshape(-1, 3).max(axis=0)
+
+
+def _contact_candidates(scene: Scene, g: _Geometry, asm: Assembly):
     """Candidate points where the rigid part can reach along its path, located on the mesh."""
     ct = scene["contact"]
-    # Faces the rigid part can reach along its whole path, plus a reach margin for the
-    # deformable part's own motion toward it.
-    reach = ct["margin"] + 0.5 * geom.undercut + ct["spacing"]
-    lo = plug.start - plug.half - reach
-    hi = plug.start + plug.half + reach
-    lo[2] -= stroke
+    mesh, rigid, poses = g.mesh, g.rigid, g.poses
+    straight_down = motion_keyposes(scene) is None and scene["motion"]["direction"] is None
+    if g.cantilever is not None and not scene["rigid"] and straight_down:
+        # The preset's faces the rigid part can reach along its whole path, plus a reach margin
+        # for the deformable part's own motion toward it.
+        stroke = motion_stroke(scene, g.cantilever)
+        reach = ct["margin"] + 0.5 * g.cantilever.undercut + ct["spacing"]
+        lo = rigid.start - rigid.half - reach
+        hi = rigid.start + rigid.half + reach
+        lo[2] -= stroke
+        swept_lo, swept_hi = rigid.start - rigid.half - [0, 0, stroke], rigid.start + rigid.half
+    else:
+        swept_lo, swept_hi = _swept_box(rigid, poses)
+        # The deformable part moves toward the rigid part by a fraction of its size at most.
+        reach = ct["margin"] + ct["spacing"] + 0.1 * float(np.min(rigid.half))
+        lo, hi = swept_lo - reach, swept_hi + reach
+        stroke = float(np.max(np.linalg.norm(poses[:, :3] - poses[0, :3], axis=1)))
     faces = reachable_faces(mesh, lo, hi)
-    swept_lo, swept_hi = plug.start - plug.half - [0, 0, stroke], plug.start + plug.half
     apart = np.any(swept_hi < mesh.points.min(axis=0)) or np.any(swept_lo > mesh.points.max(axis=0))
     if faces.size == 0 or apart:
         raise BuildError(
-            f"the rigid part's path never touches the connector (motion.stroke = {stroke:g} mm): "
-            "no contact is possible"
+            f"the rigid part's path never comes near the deformable part (it travels {stroke:g} mm, its "
+            f"swept box [{', '.join(f'{a:.3g}' for a in swept_lo)}] - [{', '.join(f'{a:.3g}' for a in swept_hi)}] mm "
+            "misses the part): no contact is possible; check motion.stroke, motion.direction or the waypoints"
         )
-    X, normals, corner, stencil, group, order = section_samples(geom, lo, hi, ct["spacing"], ct["width_spacing"])
+    if g.cantilever is not None and ct["sampling"] == "auto":
+        X, normals, corner, stencil, group, order = section_samples(
+            g.cantilever, lo, hi, ct["spacing"], ct["width_spacing"]
+        )
+    else:
+        X, normals, corner, stencil, group, order = surface_samples(
+            mesh, lo, hi, g.axis, ct["spacing"], ct["width_spacing"]
+        )
+    if X.shape[0] == 0:
+        raise BuildError("no contact candidate on the part's surface where the rigid part passes")
     nodes, weights, owner = locate_on_faces(asm, faces, X, normals[:, 0])
     pad = max(STENCIL_SIDE, STENCIL_WIDTH)
     st_faces = reachable_faces(mesh, lo - pad, hi + pad)
@@ -191,18 +302,20 @@ def _contact_candidates(scene: Scene, geom, mesh, asm: Assembly, plug, stroke: f
     return samples, sample, st, seeds, normals
 
 
-def _rigid_sdf(scene: Scene, plug, report: BuildReport, progress: bool):
+def _rigid_sdf(scene: Scene, rigid: _Rigid, report: BuildReport, progress: bool):
     """The rigid part's signed distance component (``solver.sdf``)."""
-    box = RoundedBoxSDF(jnp.asarray(plug.half), jnp.asarray(plug.radius, jnp.float64))
-    kind = scene["solver"]["sdf"]
+    kind = sdf_kind(scene)
     if kind == "analytic":
-        return box
+        return RoundedBoxSDF(jnp.asarray(rigid.half), jnp.asarray(rigid.radius, jnp.float64))
+    # A lower bound that culls far points cheaply: the rounded box itself (preset) or a plain
+    # box holding the surface.
+    bound = RoundedBoxSDF(jnp.asarray(rigid.half), jnp.asarray(rigid.radius or 0.0, jnp.float64))
     if kind == "mesh":
-        return BoundedSDF(mesh_sdf_from_trimesh(plug.mesh()), box, _MESH_SLACK)
+        return BoundedSDF(mesh_sdf_from_trimesh(rigid.mesh), bound, _MESH_SLACK)
     # Trained once per rigid-part mesh and settings, then cached on disk.
-    net, info = load_or_train(plug.mesh(), progress=progress)
+    net, info = load_or_train(rigid.mesh, progress=progress)
     report.sdf = info
-    bound = RoundedBoxSDF(jnp.asarray(plug.half), jnp.asarray(0.0, jnp.float64))
+    bound = RoundedBoxSDF(jnp.asarray(rigid.half), jnp.asarray(0.0, jnp.float64))
     return BoundedSDF(net, bound, _NEURAL_SLACK)
 
 
@@ -212,21 +325,18 @@ def build_model(scene: Scene, *, progress: bool = False) -> tuple[Model, BuildRe
     report = BuildReport()
     say = print if progress else (lambda *a, **k: None)
     s, m, ct = scene["solver"], scene["motion"], scene["contact"]
-    geom = connector_geometry(scene)
-    mesh = mesh_cantilever(geom, s["mesh_size"])
+    g = _geometry(scene)
+    mesh = g.mesh
     check_memory(_estimate_dof(mesh, s["element"]), s["method"])
     asm = assemble(mesh, s["element"])
     report.tets, report.full_dof = int(mesh.cells.shape[0]), int(asm.free.size)
     say(f"jsnap: {s['element']} mesh, {report.tets} tets, {report.full_dof} free dofs")
 
-    plug = default_plug(scene["plug"], geom)
-    stroke = motion_stroke(scene, geom)
-    motion = straight_insertion(plug.start, m["speed"], stroke, m["withdraw"], s["dt"])
     with jax.enable_x64(True):
-        samples, sample, stencil, seeds, normals = _contact_candidates(scene, geom, mesh, asm, plug, stroke)
+        samples, sample, stencil, seeds, normals = _contact_candidates(scene, g, asm)
         report.contact_points = int(samples.rest.shape[0])
         say(f"jsnap: {report.contact_points} contact candidate points")
-        rigid = _rigid_sdf(scene, plug, report, progress)
+        rigid = _rigid_sdf(scene, g.rigid, report, progress)
         if report.sdf is not None:
             what = "loaded from" if report.sdf["cached"] else "trained, cached in"
             say(f"jsnap: neural SDF {what} {report.sdf['path']}")
@@ -266,12 +376,13 @@ def build_model(scene: Scene, *, progress: bool = False) -> tuple[Model, BuildRe
             drive=drive,
             contact=ContactSettings(solver, ct["capacity"], ct["margin"], ct["compliance"]),
             params=params_from_scene(scene),
-            motion=jnp.asarray(motion),
+            motion=jnp.asarray(g.poses),
             mesh=MeshArrays(
                 jnp.asarray(asm.nodes), jnp.asarray(asm.cells, jnp.int32), jnp.asarray(asm.free, jnp.int32)
             ),
             dt=float(s["dt"]),
             dtype=rollout_dtype(scene),
+            axis=jnp.asarray(g.axis),
         )
     report.seconds = time.perf_counter() - t0
     return model, report

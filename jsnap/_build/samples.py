@@ -17,7 +17,14 @@ from jsnap._build.fem import Assembly
 from jsnap._geometry.cantilever import Cantilever
 from jsnap._geometry.mesh import TetMesh
 
-__all__ = ["STENCIL_SIDE", "STENCIL_WIDTH", "locate_on_faces", "reachable_faces", "section_samples"]
+__all__ = [
+    "STENCIL_SIDE",
+    "STENCIL_WIDTH",
+    "locate_on_faces",
+    "reachable_faces",
+    "section_samples",
+    "surface_samples",
+]
 
 
 def _edge_node_lookup(asm: Assembly):
@@ -163,3 +170,220 @@ def reachable_faces(mesh: TetMesh, lo: np.ndarray, hi: np.ndarray) -> np.ndarray
     return faces[hit]
 
 
+def _patches(points: np.ndarray, faces: np.ndarray, normals: np.ndarray, cos_tol: float):
+    """Label (F,) of flat patches: faces joined across shared edges whose normals agree within
+    ``cos_tol``; and the edge -> faces map (every edge of ``faces``)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    F = faces.shape[0]
+    edges = np.sort(faces[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1)  # (3F, 2)
+    owner = np.repeat(np.arange(F), 3)
+    _, inverse = np.unique(edges, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    order = np.argsort(inverse, kind="stable")
+    key, own = inverse[order], owner[order]
+    same = np.flatnonzero(key[1:] == key[:-1])
+    a, b = own[same], own[same + 1]
+    flat = np.einsum("ij,ij->i", normals[a], normals[b]) > cos_tol
+    graph = coo_matrix((np.ones(int(flat.sum())), (a[flat], b[flat])), shape=(F, F))
+    _, label = connected_components(graph, directed=False)
+    neighbour = -np.ones((F, 3), np.int64)  # the face across each edge (-1: none among `faces`)
+    slot = order % 3
+    neighbour[own[same], slot[same]] = own[same + 1]
+    neighbour[own[same + 1], slot[same + 1]] = own[same]
+    return label, neighbour
+
+
+def _line_hits(P2, v: float, tol: float):
+    """For triangles P2 (T, 3, 2) in patch coordinates (u, v), the u-interval each meets on the
+    line v (NaN where it misses) and which edge gives each end: (lo, hi, edge_lo, edge_hi)."""
+    a = P2[:, [0, 1, 2]]
+    b = P2[:, [1, 2, 0]]
+    dv = b[..., 1] - a[..., 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (v - a[..., 1]) / dv
+    cross = (np.abs(dv) > tol) & (s >= -1e-12) & (s <= 1 + 1e-12)
+    u = np.where(cross, a[..., 0] + s.clip(0, 1) * (b[..., 0] - a[..., 0]), np.nan)
+    # An edge lying on the line gives both its ends.
+    on = (np.abs(dv) <= tol) & (np.abs(a[..., 1] - v) <= tol)
+    u_lo = np.fmin(np.where(on, np.minimum(a[..., 0], b[..., 0]), np.nan), u)
+    u_hi = np.fmax(np.where(on, np.maximum(a[..., 0], b[..., 0]), np.nan), u)
+    lo, hi = np.nanmin(u_lo, axis=1, initial=np.inf), np.nanmax(u_hi, axis=1, initial=-np.inf)
+    e_lo = np.argmin(np.where(np.isnan(u_lo), np.inf, u_lo), axis=1)
+    e_hi = np.argmax(np.where(np.isnan(u_hi), -np.inf, u_hi), axis=1)
+    return lo, hi, e_lo, e_hi
+
+
+def _inside(P2, q, tol: float) -> np.ndarray:
+    """(k,) bool: points q (k, 2) inside any triangle of P2 (T, 3, 2), with tolerance."""
+    a, b, c = P2[:, 0], P2[:, 1], P2[:, 2]
+
+    def side(s, e):
+        return (e[None, :, 0] - s[None, :, 0]) * (q[:, None, 1] - s[None, :, 1]) - (
+            e[None, :, 1] - s[None, :, 1]
+        ) * (q[:, None, 0] - s[None, :, 0])
+
+    d1, d2, d3 = side(a, b), side(b, c), side(c, a)
+    pos = (d1 >= -tol) & (d2 >= -tol) & (d3 >= -tol)
+    neg = (d1 <= tol) & (d2 <= tol) & (d3 <= tol)
+    return np.any(pos | neg, axis=1)
+
+
+def _patch_frame(normal_sum: np.ndarray, direction: np.ndarray, points: np.ndarray):
+    """(n, u, v): a flat patch's unit normal, the motion's direction in it (when the patch
+    faces the motion: across its narrower extent, its vertices being ``points``) and
+    ``v = u x n`` across, so that ``cross(v, u) = n``."""
+    n = normal_sum / np.linalg.norm(normal_sum)
+    u = direction - np.dot(direction, n) * n
+    if np.linalg.norm(u) < 1e-6:  # the patch faces the motion: lines across its narrower side
+        a = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
+        a /= np.linalg.norm(a)
+        b = np.cross(n, a)
+        span = lambda axis: np.ptp(points @ axis)  # noqa: E731
+        u = a if span(a) <= span(b) else b
+    u /= np.linalg.norm(u)
+    return n, u, np.cross(u, n)
+
+
+def surface_samples(mesh: TetMesh, lo, hi, direction, spacing: float, width_spacing: float):
+    """Candidate points on any part's surface within the box [lo, hi] (mm).
+
+    The boundary faces there are joined into flat patches (normals within 1 degree), and each
+    patch is sampled along lines that run with the rigid part's motion (``direction`` projected
+    into the patch) from one edge of the patch to the other: every ``spacing`` along a line
+    (fine: the contact line moves along it) and every ``width_spacing`` across (coarse). Points
+    that coincide (the ends of two patches' lines on their common edge) are kept once; a line's
+    end on a convex edge is a corner point, whose second normal stencil lies on the patch
+    across the edge. On a prismatic part moved along its faces this is the section sampling of
+    :func:`section_samples`.
+
+    Returns the same arrays as :func:`section_samples` (points, normals (P, 2, 3), corner,
+    stencils (P, 8, 3), group, order).
+    """
+    pts = mesh.points
+    # Whole patches are sampled (their grid does not depend on the box), then cut to the box.
+    faces = mesh.boundary_faces()
+    tri = pts[faces]
+    near = np.all(tri.max(axis=1) >= lo, axis=1) & np.all(tri.min(axis=1) <= hi, axis=1)
+    nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    unit = nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
+    flat = math.cos(math.radians(1.0))
+    label, neighbour = _patches(pts, faces, unit, flat)
+    scale = float(np.linalg.norm(np.ptp(pts, axis=0)))
+    tol = 1e-9 * scale
+    # Faces joined through slowly turning neighbours (a curved surface) are not one plane:
+    # each of those is its own patch.
+    for p in np.unique(label):
+        members = np.flatnonzero(label == p)
+        n = np.sum(nrm[members], axis=0)
+        if np.max(np.abs((tri[members] - tri[members[0], 0]) @ (n / np.linalg.norm(n)))) > 1e-7:
+            label[members] = label.max() + 1 + np.arange(members.size)
+    d = np.asarray(direction, np.float64) / np.linalg.norm(direction)
+    frames = {
+        int(p): _patch_frame(np.sum(nrm[label == p], axis=0), d, tri[label == p].reshape(-1, 3))
+        for p in np.unique(label)
+    }
+    flat2d = {}  # patch -> (origin, its triangles in its (u, v) coordinates)
+    for patch, (_, u, v) in frames.items():
+        t = tri[label == patch]
+        flat2d[patch] = (t[0, 0], np.stack([(t - t[0, 0]) @ u, (t - t[0, 0]) @ v], axis=-1))
+
+    def on_patch(patch, q) -> bool:
+        o, P2 = flat2d[patch]
+        _, u, v = frames[patch]
+        return bool(_inside(P2, np.array([[(q - o) @ u, (q - o) @ v]]), tol * scale)[0])
+
+    X, N, C, S, G, O = [], [], [], [], [], []
+    line = 0
+    for patch, (n, u, v) in frames.items():
+        members = np.flatnonzero(label == patch)
+        if not near[members].any():
+            continue
+        o, P2 = flat2d[patch]  # P2: (T, 3, 2)
+        v_lo, v_hi = P2[..., 1].min(), P2[..., 1].max()
+        k = max(1, math.ceil((v_hi - v_lo) / width_spacing - 1e-9))
+        for vk in np.clip(np.linspace(v_lo, v_hi, k + 1), v_lo + 2 * tol, v_hi - 2 * tol):
+            lo_t, hi_t, e_lo, e_hi = _line_hits(P2, vk, tol)
+            hit = np.isfinite(lo_t) & (hi_t >= lo_t)
+            if not hit.any():
+                continue
+            t_lo = int(np.argmin(np.where(hit, lo_t, np.inf)))
+            t_hi = int(np.argmax(np.where(hit, hi_t, -np.inf)))
+            u_lo, u_hi = lo_t[t_lo], hi_t[t_hi]
+            m = max(1, math.ceil((u_hi - u_lo) / spacing - 1e-9))
+            us = u_lo + (u_hi - u_lo) * np.arange(m + 1) / m
+            inside = _inside(P2, np.stack([us, np.full_like(us, vk)], 1), tol * scale)
+            ends = {0: (members[t_lo], e_lo[t_lo]), m: (members[t_hi], e_hi[t_hi])}
+            for j in np.flatnonzero(inside):
+                p = o + us[j] * u + vk * v
+                own = [
+                    o + max(u_lo, us[j] - STENCIL_SIDE) * u + vk * v,
+                    o + min(u_hi, us[j] + STENCIL_SIDE) * u + vk * v,
+                ]
+                for sign in (-1.0, 1.0):  # across, clipped to the patch (and shortened to stay on it)
+                    step = float(np.clip(vk + sign * STENCIL_WIDTH, v_lo, v_hi)) - vk
+                    while not _inside(P2, np.array([[us[j], vk + step]]), tol * scale)[0]:
+                        step = 0.0 if abs(step) < 1e-3 * STENCIL_WIDTH else 0.5 * step
+                    own.append(p + step * v)
+                other, n_other, corner = own, n, False
+                if j in ends:
+                    face, edge = ends[j]
+                    nb = neighbour[face, edge]
+                    if nb >= 0 and label[nb] != patch and np.dot(unit[nb], n) < flat:
+                        far = tri[nb].mean(axis=0)
+                        if np.dot(far - p, n) < -tol:  # convex: the patch across turns away
+                            a, b = pts[faces[face, edge]], pts[faces[face, (edge + 1) % 3]]
+                            e = (b - a) / np.linalg.norm(b - a)
+                            square = abs(np.dot(v, e)) > 1 - 1e-9  # the line crosses the edge squarely
+                            e = v if square else e  # the stencil's axes: cross(e, w) = n2 below
+                            n2 = unit[nb]
+                            w = np.cross(n2, e)  # in the neighbour, across the edge
+                            into = 1.0 if np.dot(far - p, w) >= 0 else -1.0
+                            step = STENCIL_SIDE  # shortened to stay on the neighbour
+                            while step > 1e-3 * STENCIL_SIDE and not on_patch(
+                                int(label[nb]), p + into * step * w
+                            ):
+                                step *= 0.5
+                            if on_patch(int(label[nb]), p + into * step * w):  # else: a face point
+                                side = [p, p + step * w] if into > 0 else [p - step * w, p]
+                                if square:
+                                    along = own[2:]  # the points across lie on the edge, on both patches
+                                else:
+                                    length = np.linalg.norm(b - a)
+                                    half = 0.5 * min(length, 2 * STENCIL_WIDTH)
+                                    mid = np.clip(np.dot(p - a, e), half, length - half)
+                                    along = [a + (mid - half) * e, a + (mid + half) * e]
+                                other, n_other, corner = [*side, *along], n2, True
+                X.append(p)
+                N.append((n, n_other))
+                C.append(corner)
+                S.append((*own, *other))
+                G.append(line)
+                O.append(j)
+            line += 1
+    if not X:
+        empty = np.zeros((0, 3))
+        return (
+            empty,
+            np.zeros((0, 2, 3)),
+            np.zeros(0, bool),
+            np.zeros((0, 8, 3)),
+            np.zeros(0, int),
+            np.zeros(0, int),
+        )
+    X, N, C, S, G, O = (np.array(a) for a in (X, N, C, S, G, O))
+    keep = _dedupe(X, C, 1e-6 * scale)
+    keep = keep[np.all((X[keep] >= lo) & (X[keep] <= hi), axis=1)]
+    _, G = np.unique(G[keep], return_inverse=True)
+    return X[keep], N[keep], C[keep], S[keep], G, O[keep]
+
+
+def _dedupe(X: np.ndarray, corner: np.ndarray, tol: float) -> np.ndarray:
+    """Indices of points kept when several coincide (within ``tol``): a corner one first."""
+    key = np.round(X / tol).astype(np.int64)
+    order = np.lexsort((~corner, *key.T[::-1]))
+    k = key[order]
+    new = np.ones(len(order), bool)
+    new[1:] = np.any(k[1:] != k[:-1], axis=1)
+    return np.sort(order[new])

@@ -14,6 +14,7 @@ import dataclasses
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from jsnap._core.contact import AbstractContactSolver
@@ -93,10 +94,12 @@ class Model(eqx.Module):
         contact: detection and solver settings.
         params: the scene's physical parameters (the default of ``rollout``).
         motion: (n + 1, 3) the scene's desired rigid-part centres at t_k = k dt, mm (row 0:
-            the start pose).
+            the start pose); (n + 1, 7) with the orientation as a unit quaternion (w, x, y, z)
+            in the last four columns when the rigid part turns.
         mesh: the deformable part's mesh (outputs only).
         dt: time step, s (static).
         dtype: default rollout precision, ``"float32"`` or ``"float64"`` (static).
+        axis: (3,) unit insertion axis: the insertion force is the contact force along it.
     """
 
     part: AbstractPart
@@ -109,6 +112,12 @@ class Model(eqx.Module):
     mesh: MeshArrays
     dt: float = eqx.field(static=True)
     dtype: str = eqx.field(static=True)
+    axis: jax.Array = eqx.field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
+
+    @property
+    def rotates(self) -> bool:
+        """The scene's motion turns the rigid part (its poses hold quaternions)."""
+        return self.motion.shape[-1] == 7
 
     @property
     def method(self) -> str:
@@ -143,10 +152,18 @@ class Model(eqx.Module):
     @property
     def plug_start(self) -> jax.Array:
         """(3,) the rigid part's centre at t = 0, mm."""
-        return self.motion[0]
+        return self.motion[0, :3]
+
+    @property
+    def rotation_start(self) -> jax.Array:
+        """(4,) the rigid part's orientation at t = 0, a unit quaternion (w, x, y, z)."""
+        if self.rotates:
+            return self.motion[0, 3:]
+        return jnp.array([1.0, 0.0, 0.0, 0.0], self.motion.dtype)
 
     def trajectory(self) -> np.ndarray:
-        """(n_steps + 1, 3) desired rigid-part centres at t_k = k dt, mm (host copy)."""
+        """(n_steps + 1, 3) desired rigid-part centres at t_k = k dt, mm, or (n_steps + 1, 7)
+        poses with their quaternions when the rigid part turns (host copy)."""
         return np.asarray(self.motion)
 
     def astype(self, dtype) -> Model:

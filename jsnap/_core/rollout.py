@@ -41,18 +41,23 @@ class Result(StepOutput):
 
     Attributes:
         t: (n,) time at the end of each step, s.
-        travel: (n,) the rigid part's travel along -z since t = 0, mm.
-        insertion_force: (n,) force that pushes the rigid part along -z against the deformable
-            part, N (positive while the part resists).
+        travel: (n,) the rigid part's travel along the insertion axis (``model.axis``, -z for
+            the presets) since t = 0, mm.
+        insertion_force: (n,) force that pushes the rigid part along the insertion axis
+            against the deformable part, N (positive while the part resists).
         lateral_force: (n,) x-component of the deformable part's force on the rigid part, N.
         base_force: (n, 3) reaction of the fixed base on the deformable part, N (what a force
             sensor under it reads; in statics it balances the contact force).
         base_moment: (n, 3) its moment about the base centroid, N mm.
         coupling_force: (n, 3) force of the drive on the rigid part, N (the haptic force under
             impedance control).
+        coupling_moment: (n, 3) moment of the contact forces on the deformable part about the
+            rigid part's centre, N mm: the torque the drive holds the rigid part's orientation
+            against (the orientation follows its path under either drive).
         energy: (n,) the deformable part's energy 1/2 v'Mv + 1/2 x'Kx after the step, N mm.
         work: (n,) work of the rigid part on the deformable part during the step, N mm.
         plug: (n, 3) the rigid part's centre, mm.
+        plug_rotation: (n, 4) its orientation, a unit quaternion (w, x, y, z).
         contact_force: (n, C, 3) force of the rigid part on the deformable part at each slot, N.
         contact_point: (n, C, 3) slot positions, mm.
         contact_active: (n, C) bool, the slot holds a contact.
@@ -100,17 +105,25 @@ class Result(StepOutput):
 
 
 def _check_controls(controls, batched: bool = False):
-    """``controls`` must be (steps, 3) (or (B, steps, 3)), steps >= 1, and finite (checked when
-    not traced). Returns them as a host array when concrete, else as they are."""
+    """``controls`` must be (steps, 3) centres or (steps, 7) poses (or with a leading batch
+    axis), steps >= 1, finite and with unit quaternions (checked when not traced). Returns them
+    as a host array when concrete, else as they are."""
     if not isinstance(controls, jax.core.Tracer):
         controls = np.asarray(controls)
     want = 3 if batched else 2
-    if controls.ndim != want or controls.shape[-1] != 3 or controls.shape[-2] < 1:
-        shape = "(B, steps, 3)" if batched else "(steps, 3)"
+    if controls.ndim != want or controls.shape[-1] not in (3, 7) or controls.shape[-2] < 1:
+        shape = "(B, steps, 3 or 7)" if batched else "(steps, 3 or 7)"
         raise ValueError(
-            f"controls must be {shape} desired rigid-part centres, mm, with steps >= 1; "
-            f"got shape {controls.shape}"
+            f"controls must be {shape} desired rigid-part centres, mm (and unit quaternions w, x, y, z), "
+            f"with steps >= 1; got shape {controls.shape}"
         )
+    if isinstance(controls, np.ndarray) and controls.shape[-1] == 7:
+        off = np.abs(np.linalg.norm(controls[..., 3:], axis=-1) - 1) > 1e-6
+        if off.any():
+            i = tuple(int(k) for k in np.unravel_index(int(np.argmax(off)), off.shape))
+            raise ValueError(
+                f"controls: the quaternion of row {i[0] if len(i) == 1 else i} is not of unit norm"
+            )
     if isinstance(controls, np.ndarray):
         bad = ~np.isfinite(controls).all(axis=-1)
         if bad.any():
@@ -131,7 +144,7 @@ def _start(model: Model, prepared: Prepared, controls, plug_start, dtype) -> Sta
     """The state at rest; the rigid part moves with its drive from the first step (no start-up
     transient in a virtual coupling)."""
     state = init_state(model, dtype, plug_start)
-    vel = (controls[0] - state.plug) / jnp.asarray(model.dt, dtype)
+    vel = (controls[0, :3] - state.plug) / jnp.asarray(model.dt, dtype)
     return eqx.tree_at(lambda s: s.plug_vel, state, vel)
 
 
@@ -155,7 +168,7 @@ def _run(model: Model, prepared: Prepared, controls, plug_start, keep_x: bool):
     return out, xs, state.plug
 
 
-def _result(out: StepOutput, xs, start, valid, dt) -> Result:
+def _result(out: StepOutput, xs, start, valid, dt, axis) -> Result:
     """Stack a rollout's outputs into a :class:`Result`: flag energy creation over the whole
     history and, for invalid parameters, make every floating output NaN."""
     dtype = out.energy.dtype
@@ -173,15 +186,17 @@ def _result(out: StepOutput, xs, start, valid, dt) -> Result:
 
     res = Result(
         t=(jnp.arange(n) + 1) * jnp.asarray(dt, dtype),
-        travel=start[..., 2:3] - out.plug[..., 2],
+        travel=jnp.sum((out.plug - start[..., None, :]) * axis, axis=-1),
         insertion_force=out.insertion_force,
         lateral_force=out.lateral_force,
         base_force=out.base_force,
         base_moment=out.base_moment,
         coupling_force=out.coupling_force,
+        coupling_moment=out.coupling_moment,
         energy=out.energy,
         work=out.work,
         plug=out.plug,
+        plug_rotation=out.plug_rotation,
         contact_force=out.contact_force,
         contact_point=out.contact_point,
         contact_active=out.contact_active,
@@ -197,8 +212,9 @@ def _result(out: StepOutput, xs, start, valid, dt) -> Result:
 
 
 _FLOAT_FIELDS = (
-    "travel", "insertion_force", "lateral_force", "base_force", "base_moment", "coupling_force", "energy",
-    "work", "plug", "contact_force", "contact_point", "residual", "x",
+    "travel", "insertion_force", "lateral_force", "base_force", "base_moment", "coupling_force",
+    "coupling_moment", "energy", "work", "plug", "plug_rotation", "contact_force", "contact_point", "residual",
+    "x",
 )  # fmt: skip
 
 
@@ -211,7 +227,7 @@ def _nan_fields(res: Result, f) -> Result:
 def _whole(model: Model, prepared: Prepared, controls, plug_start, keep_x):
     """``rollout`` without progress: the casts, the scan and the result in one compiled call."""
     out, xs, start = _run(model, prepared, controls, plug_start, keep_x)
-    return _result(out, xs, start, prepared.valid, model.dt)
+    return _result(out, xs, start, prepared.valid, model.dt, model.axis.astype(out.energy.dtype))
 
 
 def progress_chunk(n_steps: int) -> int:
@@ -226,8 +242,8 @@ def _chunk(model: Model, prepared: Prepared, state: State, controls, keep_x):
 
 
 @eqx.filter_jit
-def _finish(out, xs, start, valid, dt):
-    return _result(out, xs, start, valid, dt)
+def _finish(out, xs, start, valid, dt, axis):
+    return _result(out, xs, start, valid, dt, axis.astype(out.energy.dtype))
 
 
 def _with_progress(model, prepared, controls, plug_start, keep_x):
@@ -255,7 +271,7 @@ def _with_progress(model, prepared, controls, plug_start, keep_x):
             bar.update(n_real)
     out = jax.tree_util.tree_map(lambda *a: jnp.concatenate(a), *outs)
     xs = None if not keep_x else jnp.concatenate(xs_all)
-    return _finish(out, xs, start, prepared.valid, model.dt)
+    return _finish(out, xs, start, prepared.valid, model.dt, model.axis)
 
 
 @x64
@@ -275,8 +291,9 @@ def rollout(
     Args:
         model: ``jsnap.build(scene)``.
         params: physical parameters (default: the scene's); differentiable.
-        controls: (steps, 3) desired rigid-part centres at the end of each step, mm (default:
-            the scene's motion, ``model.trajectory()[1:]``).
+        controls: (steps, 3) desired rigid-part centres at the end of each step, mm, or
+            (steps, 7) poses with a unit quaternion (w, x, y, z) each (default: the scene's
+            motion, ``model.trajectory()[1:]``).
         plug_start: (3,) the rigid part's centre at t = 0, mm (default: the scene's).
         dtype: rollout precision, ``"float32"`` or ``"float64"`` (default: the scene's).
         keep_x: also return the deformable part's coordinates (``Result.x``).
@@ -357,8 +374,8 @@ def rollout_batch(
         model: ``jsnap.build(scene)``.
         params: :class:`Params` whose fields are scalars (shared) or (B,) arrays (one per
             rollout), e.g. ``model.params.replace(E=jnp.array([2000., 2200., 2400.]))``.
-        controls: (B, steps, 3) desired rigid-part centres per rollout, mm (default: the
-            scene's motion for all).
+        controls: (B, steps, 3) desired rigid-part centres (or (B, steps, 7) poses) per
+            rollout, mm (default: the scene's motion for all).
         plug_start: (B, 3) start centres, mm (default: the scene's for all).
         dtype, keep_x: as for :func:`rollout`.
 
@@ -382,7 +399,7 @@ def rollout_batch(
     B = _batch_size(params, controls, plug_start)
     params = Params(**{k: jnp.broadcast_to(jnp.asarray(getattr(params, k)), (B,)) for k in FIELDS})
     if controls is None:
-        controls = jnp.broadcast_to(jnp.asarray(model.motion[1:], dtype), (B, model.n_steps, 3))
+        controls = jnp.broadcast_to(jnp.asarray(model.motion[1:], dtype), (B, *model.motion[1:].shape))
     if plug_start is None:
         plug_start = jnp.broadcast_to(jnp.asarray(model.plug_start, dtype), (B, 3))
     return _batched(model, params, controls, plug_start, keep_x)
@@ -393,6 +410,6 @@ def _batched(model: Model, params: Params, controls, plug_start, keep_x):
     def one(p, c, s):
         prepared = _prepare(model, p)
         out, xs, start = _run(model, prepared, c, s, keep_x)
-        return _result(out, xs, start, prepared.valid, model.dt)
+        return _result(out, xs, start, prepared.valid, model.dt, model.axis.astype(out.energy.dtype))
 
     return jax.vmap(one)(params, controls, plug_start)

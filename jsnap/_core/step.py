@@ -32,6 +32,7 @@ from jsnap._core.collision import contact_normal, frames, manifold
 from jsnap._core.contact import ContactSolution
 from jsnap._core.model import Model
 from jsnap._core.params import Params, params_valid
+from jsnap._core.pose import angular_velocity, quat_matrix
 from jsnap._core.util import cast_floats, x64
 
 __all__ = ["Prepared", "State", "StepOutput", "init_state", "prepare", "step"]
@@ -67,6 +68,8 @@ class State(eqx.Module):
         t: time, s.
         gamma: (P, 3) last contact force per candidate point, contact frame, N (the warm start
             of the contact solver: quasi-static contact changes little from step to step).
+        rotation: (4,) the rigid part's orientation, a unit quaternion (w, x, y, z): its frame
+            (where its signed distance is given) turned into the base's.
     """
 
     x: jax.Array
@@ -76,6 +79,7 @@ class State(eqx.Module):
     target: jax.Array
     t: jax.Array
     gamma: jax.Array
+    rotation: jax.Array
 
 
 class StepOutput(eqx.Module):
@@ -86,9 +90,11 @@ class StepOutput(eqx.Module):
     base_force: jax.Array
     base_moment: jax.Array
     coupling_force: jax.Array
+    coupling_moment: jax.Array
     energy: jax.Array
     work: jax.Array
     plug: jax.Array
+    plug_rotation: jax.Array
     contact_force: jax.Array
     contact_point: jax.Array
     contact_active: jax.Array
@@ -136,14 +142,40 @@ def prepare(model: Model, params: Params | None = None) -> Prepared:
 @x64
 def init_state(model: Model, dtype=None, plug_start=None) -> State:
     """The deformable part at rest, the rigid part at ``plug_start`` (3,) mm (default: the
-    scene's start) and at rest."""
+    scene's start) in the scene's start orientation, and at rest."""
     dtype = jnp.dtype(dtype or model.dtype)
     z = jnp.zeros(model.n_dof, dtype)
     p = jnp.asarray(model.plug_start if plug_start is None else plug_start, dtype)
     if p.shape != (3,):
         raise ValueError(f"plug_start must be (3,), the rigid part's centre in mm; got shape {p.shape}")
     g = jnp.zeros((model.n_samples, 3), dtype)
-    return State(z, z, p, jnp.zeros(3, dtype), p, jnp.zeros((), dtype), g)
+    q = jnp.asarray(model.rotation_start, dtype)
+    return State(z, z, p, jnp.zeros(3, dtype), p, jnp.zeros((), dtype), g, q)
+
+
+class _Frame(NamedTuple):
+    """The rigid part's frame over one step: points into it, normals out of it, and the
+    velocity of its material points. Without rotation (3-wide controls) every map is the
+    identity and costs nothing."""
+
+    plug: jax.Array  # (3,) centre at the start of the step, mm
+    R: jax.Array | None  # (3, 3) its orientation (None: the base's axes)
+    omega: jax.Array | None  # (3,) angular velocity over the step, rad/s
+
+    def local(self, p):
+        """Points (..., 3) in the base's frame -> the rigid part's frame."""
+        d = p - self.plug
+        return d if self.R is None else d @ self.R
+
+    def world(self, n):
+        """Directions (..., 3) in the rigid part's frame -> the base's."""
+        return n if self.R is None else n @ self.R.T
+
+    def spin(self, p):
+        """(..., 3) velocity of the rigid part's points at ``p`` due to its rotation, mm/s."""
+        if self.omega is None:
+            return jnp.zeros_like(p)
+        return jnp.cross(self.omega, p - self.plug)
 
 
 def _rotate_blocks(R, W):
@@ -224,7 +256,9 @@ class ContactProblem(eqx.Module):
         return 0.5 * (W + W.T) + self.shift * jnp.eye(3 * k, dtype=W.dtype)
 
 
-def _contact_problem(model: Model, prepared: Prepared, state: State, vbar_free, vp_free, s_p, y, score, gamma):
+def _contact_problem(
+    model: Model, prepared: Prepared, state: State, frame: _Frame, vbar_free, vp_free, s_p, y, score, gamma
+):
     """The cone problem of one step (before solving it).
 
     Args:
@@ -242,13 +276,14 @@ def _contact_problem(model: Model, prepared: Prepared, state: State, vbar_free, 
     keep = manifold(model.samples, score, settings.margin)
     n_cand = jnp.sum(keep)
     _, idx = jax.lax.top_k(jnp.where(keep, -score, -jnp.inf), C)
-    phi, n_plug = model.rigid.scene_query(y[idx] - state.plug, settings.margin)
+    phi, n_plug = model.rigid.scene_query(frame.local(y[idx]), settings.margin)
+    n_plug = frame.world(n_plug)
     active = keep[idx]
     stencil = model.samples.stencil[idx] + part.stencil_disp(state.x, idx)
     R = frames(contact_normal(stencil, n_plug, model.samples.corner[idx]))
     A, W_loc = _local_operator(part, op, idx, R, s_p)
     shift = jnp.asarray(settings.compliance / T, dtype)
-    u_free = part.point_velocity(vbar_free, idx) - vp_free
+    u_free = part.point_velocity(vbar_free, idx) - vp_free - frame.spin(y[idx])
     q = jnp.einsum("cdi,cd->ci", R, u_free).at[:, 0].add(jnp.maximum(phi, 0) / T).reshape(-1)
     mu = jnp.broadcast_to(prepared.params.friction, (C,)).astype(dtype)
     overflow = jnp.maximum(n_cand - C, 0)
@@ -332,6 +367,15 @@ def _step(model: Model, prepared: Prepared, state: State, control):
     part = model.part
     settings = model.contact
     x, v = state.x, state.v
+    # The orientation is position-controlled under either drive; 3-wide controls keep it.
+    rotation = control[3:] if control.shape[-1] == 7 else state.rotation
+    turning = control.shape[-1] == 7 or model.rotates
+    control = control[:3]
+    frame = _Frame(
+        state.plug,
+        quat_matrix(state.rotation) if turning else None,
+        angular_velocity(state.rotation, rotation, T) if turning else None,
+    )
 
     # 1. Free motion of both parts.
     vbar_free = part.free_velocity(op, x, v)
@@ -339,10 +383,10 @@ def _step(model: Model, prepared: Prepared, state: State, control):
 
     # 2.-3. Collision and the cone problem: candidates within the margin now.
     y = model.samples.rest + part.sample_disp(x)
-    phi_now, _ = model.rigid.scene_query(y - state.plug, settings.margin)
+    phi_now, _ = model.rigid.scene_query(frame.local(y), settings.margin)
 
     def attempt(score, warm, second: bool):
-        prob = _contact_problem(model, prepared, state, vbar_free, vp_free, s_p, y, score, warm)
+        prob = _contact_problem(model, prepared, state, frame, vbar_free, vp_free, s_p, y, score, warm)
         sol, Gamma = _solve(model, prob, whole=second)
         # 4. Predict-correct: where the solved motion would carry points that were not in the
         # buffer into the rigid part (a stiff, light part released by it springs back through a
@@ -353,7 +397,10 @@ def _step(model: Model, prepared: Prepared, state: State, control):
         dv = part.contact_velocity(op, prob.A, Gamma)
         dy = T * part.sample_disp(vbar_free + dv)
         dp = T * (vp_free - s_p * jnp.sum(Gamma, axis=0))
-        phi_end = model.rigid.least_along(lambda f: y + f * dy - state.plug - f * dp, phi_now, settings.margin)
+        spin = T * frame.spin(y)  # the rigid part's turn over the step, to first order
+        phi_end = model.rigid.least_along(
+            lambda f: frame.local(y + f * (dy - spin) - f * dp), phi_now, settings.margin
+        )
         in_buffer = jnp.zeros(phi_now.shape, bool).at[prob.idx].set(prob.active)
         fresh = (phi_end < -0.5 * settings.margin) & ~in_buffer
         slots = (prob.idx, prob.active, prob.points, prob.overflow)
@@ -386,15 +433,18 @@ def _step(model: Model, prepared: Prepared, state: State, control):
         | jnp.where(res.overflow > 0, status.CONTACT_OVERFLOW, 0)
         | jnp.where(sol.residual > 100 * settings.solver.tol, status.NOT_CONVERGED, 0)
     ).astype(jnp.int32)
+    arm = res.points - state.plug
     out = StepOutput(
-        insertion_force=-total[2],
+        insertion_force=jnp.sum(total * model.axis),
         lateral_force=-total[0],
         base_force=base_force,
         base_moment=base_moment,
         coupling_force=coupling,
+        coupling_moment=jnp.sum(jnp.cross(arm, Gamma), axis=0),
         energy=part.energy(op, x_new, v_new),
-        work=T * jnp.sum(Gamma * vbar_p),
+        work=T * (jnp.sum(Gamma * vbar_p) + jnp.sum(Gamma * frame.spin(res.points))),
         plug=plug_new,
+        plug_rotation=rotation,
         contact_force=Gamma,
         contact_point=res.points,
         contact_active=active,
@@ -406,7 +456,7 @@ def _step(model: Model, prepared: Prepared, state: State, control):
         flags=flags,
     )
     gamma = jnp.zeros_like(state.gamma).at[idx].set(sol.gamma * active[:, None])
-    new = State(x_new, v_new, plug_new, vbar_p * 2 - state.plug_vel, control, state.t + T, gamma)
+    new = State(x_new, v_new, plug_new, vbar_p * 2 - state.plug_vel, control, state.t + T, gamma, rotation)
     return new, out
 
 
@@ -422,15 +472,17 @@ def step(model: Model, prepared: Prepared, state: State, control) -> tuple[State
         model: built scene.
         prepared: ``prepare(model, params)``.
         state: current :class:`State` (its dtype is the step's).
-        control: (3,) desired centre of the rigid part at the end of the step, mm.
+        control: (3,) desired centre of the rigid part at the end of the step, mm; or (7,)
+            with its desired orientation, a unit quaternion (w, x, y, z), in the last four.
 
     Returns:
         ``(next_state, StepOutput)``; ``StepOutput.flags`` holds the step's
         ``jsnap._core.status`` bits.
     """
-    if jnp.shape(control) != (3,):
+    if jnp.shape(control) not in ((3,), (7,)):
         raise ValueError(
-            f"control must be (3,), the desired rigid-part centre in mm; got shape {jnp.shape(control)}"
+            "control must be (3,), the desired rigid-part centre in mm, or (7,) with a unit quaternion "
+            f"(w, x, y, z) after it; got shape {jnp.shape(control)}"
         )
     dtype = state.x.dtype
     model = _in_dtype(model, dtype)

@@ -25,8 +25,11 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
+import numpy as np
+
 from jsnap._geometry.cantilever import Cantilever
-from jsnap._geometry.motion import latching_stroke
+from jsnap._geometry.errors import SceneError, SceneWarning
+from jsnap._geometry.motion import latching_stroke, read_pose_csv
 
 __all__ = [
     "MIN_STEPS",
@@ -38,17 +41,13 @@ __all__ = [
     "connector_geometry",
     "default_scene_path",
     "load_scene",
+    "motion_duration",
+    "motion_keyposes",
     "motion_stroke",
+    "scene_file",
+    "sdf_kind",
     "with_internal",
 ]
-
-
-class SceneError(ValueError):
-    """A scene file or scene value is invalid; the message names the key and the value."""
-
-
-class SceneWarning(UserWarning):
-    """A scene value that is allowed but likely gives a poor result; the message names the key."""
 
 
 REQUIRED = object()
@@ -80,9 +79,12 @@ class Key:
     internal_choices: tuple[str, ...] = ()
     internal: bool = False
     doc: str = ""
+    shape: str = ""
 
     def range_text(self) -> str:
         """The allowed values, as the scene reference shows them."""
+        if self.kind is list:
+            return self.shape
         if self.choices is not None:
             return " | ".join(f'"{c}"' for c in self.choices)
         if self.kind is bool:
@@ -112,6 +114,67 @@ def _nonneg(unit, default=REQUIRED, doc="", **kw):
     return Key(float, default, unit, lo=0.0, doc=doc, **kw)
 
 
+def _numbers(value, shape: tuple[int, ...], name: str):
+    """``value`` as nested lists of finite floats of ``shape``, or SceneError."""
+    try:
+        if isinstance(value, str | bool) or any(isinstance(v, bool | str) for v in np.ravel(value)):
+            raise TypeError
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        arr = None
+    if arr is None or arr.shape != shape:
+        want = " x ".join(map(str, shape))
+        raise SceneError(f"{name} = {value!r}: must be {want} numbers")
+    if not np.all(np.isfinite(arr)):
+        raise SceneError(f"{name} = {value!r}: must be finite")
+    return arr.tolist()
+
+
+def _parse_box(name, value):
+    box = _numbers(value, (2, 3), name)
+    if not all(a < b for a, b in zip(*box, strict=True)):
+        raise SceneError(f"{name} = {value!r}: the first corner must be below the second in x, y and z")
+    return box
+
+
+def _parse_direction(name, value):
+    d = _numbers(value, (3,), name)
+    if math.hypot(*d) == 0:
+        raise SceneError(f"{name} = {value!r}: must not be zero")
+    return d
+
+
+def _parse_waypoints(name, value):
+    if not isinstance(value, list) or not all(isinstance(w, Mapping) for w in value):
+        raise SceneError(
+            f"{name}: must be an array of tables {{ t = ..., position = [...], rotation = [...] }}"
+        )
+    out = []
+    for i, w in enumerate(value):
+        extra = set(w) - {"t", "position", "rotation"}
+        if extra:
+            raise SceneError(
+                f"{name}[{i}]: unknown key(s) {', '.join(sorted(extra))}; takes t, position, rotation"
+            )
+        if "t" not in w or "position" not in w:
+            raise SceneError(f"{name}[{i}]: needs t (s) and position (mm); rotation defaults to [1, 0, 0, 0]")
+        t = _numbers(w["t"], (), f"{name}[{i}].t")
+        pos = _numbers(w["position"], (3,), f"{name}[{i}].position")
+        rot = _numbers(w.get("rotation", [1.0, 0.0, 0.0, 0.0]), (4,), f"{name}[{i}].rotation")
+        out.append({"t": t, "position": pos, "rotation": rot})
+    from jsnap._geometry.motion import check_poses
+
+    check_poses([w["t"] for w in out], [w["position"] for w in out], [w["rotation"] for w in out], name)
+    return out
+
+
+_PARSERS = {
+    "part.fixed_box": _parse_box,
+    "motion.direction": _parse_direction,
+    "motion.waypoints": _parse_waypoints,
+}
+
+
 SCHEMA: dict[str, dict[str, Key]] = {
     "connector": {
         "type": Key(str, choices=("cantilever",), doc="connector family (the canonical cantilever snap hook)"),
@@ -134,6 +197,32 @@ SCHEMA: dict[str, dict[str, Key]] = {
             doc="alpha', retention face (90 = square, permanent)",
         ),
         "flat": _nonneg("mm", doc="land between the retention face and the lead ramp"),
+    },
+    "part": {
+        "mesh": Key(
+            str,
+            doc="the deformable part, instead of [connector]: tetrahedra in any meshio format, or a closed "
+            "surface (STL/OBJ/PLY) tet-meshed at solver.mesh_size; relative to the scene file",
+        ),
+        "units": Key(str, "mm", choices=("mm", "m", "in"), doc="length unit of the file's coordinates"),
+        "fixed": Key(
+            str, None, doc="fixed region: a named group of the file (point set, cell set, mask, physical group)"
+        ),
+        "fixed_box": Key(
+            list,
+            None,
+            "mm",
+            doc="fixed region: the nodes inside this box are fixed",
+            shape="[[x0, y0, z0], [x1, y1, z1]]",
+        ),
+    },
+    "rigid": {
+        "mesh": Key(
+            str,
+            doc="the rigid part, instead of the preset plug: a closed surface (STL/OBJ/PLY), its coordinates "
+            "its pose at t = 0 in the frame of the fixed base; relative to the scene file",
+        ),
+        "units": Key(str, "mm", choices=("mm", "m", "in"), doc="length unit of the file's coordinates"),
     },
     "material": {
         "youngs_modulus": _pos("MPa", doc="E, Young's modulus"),
@@ -159,6 +248,13 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "spacing": _pos("mm", 0.02, "candidate spacing along the section outline", internal=True),
         "margin": _nonneg("mm", 0.02, "distance below which a point is a contact candidate", internal=True),
         "compliance": _nonneg("mm/N", 0.0, "contact regularisation per point", internal=True),
+        "sampling": Key(
+            str,
+            "auto",
+            choices=("auto", "surface"),
+            internal=True,
+            doc="contact candidates: the preset's own (its section outline) or the general surface sampling",
+        ),
         "gradient": Key(
             str,
             "implicit",
@@ -175,9 +271,33 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "clearance": _nonneg("mm", 0.02, "start gap above the hook's top", internal=True),
     },
     "motion": {
-        "speed": _pos("mm/s", 10.0, "insertion speed along -z"),
-        "stroke": _pos("mm", None, "travel; default: the rigid part latches 0.3 mm below the hook"),
-        "withdraw": Key(bool, False, doc="return along +z after the stroke"),
+        "direction": Key(
+            list,
+            None,
+            "",
+            doc="straight insertion direction (normalised); default [0, 0, -1]",
+            shape="[x, y, z]",
+        ),
+        "speed": _pos("mm/s", 10.0, "insertion speed along motion.direction"),
+        "stroke": _pos(
+            "mm", None, "travel; default (preset plug): the rigid part latches 0.3 mm below the hook"
+        ),
+        "withdraw": Key(bool, False, doc="return to the start after the stroke"),
+        "waypoints": Key(
+            list,
+            None,
+            "s, mm",
+            doc="instead of a straight insertion: poses { t, position (relative to the start), rotation "
+            "(unit quaternion w, x, y, z about the rigid part's centroid) }, interpolated linearly and by "
+            "slerp",
+            shape="[{ t = 0.0, position = [0, 0, 0], rotation = [1, 0, 0, 0] }, ...]",
+        ),
+        "trajectory": Key(
+            str,
+            None,
+            doc="instead of a straight insertion: a CSV file of poses t, x, y, z, qw, qx, qy, qz "
+            "(as waypoints)",
+        ),
         "control": Key(
             str,
             "position",
@@ -205,9 +325,11 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "mesh_size": _pos("mm", 0.8, "element size"),
         "sdf": Key(
             str,
-            "analytic",
+            None,
             choices=("analytic", "mesh", "neural"),
-            doc="the rigid part's signed distance: exact formula, exact triangle mesh, or trained network",
+            doc="the rigid part's signed distance: exact formula (preset plug), exact triangle mesh, or "
+            "trained "
+            "network; default analytic for the preset plug, mesh for a [rigid] file",
         ),
         "dtype": Key(
             str,
@@ -264,6 +386,8 @@ def _coerce(name: str, spec: Key, value: Any, internal: bool) -> Any:
             raise SceneError(f"{name} = {value!r}: must be true or false")
     elif spec.kind is str and not isinstance(value, str):
         raise SceneError(f"{name} = {value!r}: must be a string")
+    elif spec.kind is list:
+        return _PARSERS[name](name, value)
     if spec.choices is not None:
         allowed = spec.choices + (spec.internal_choices if internal else ())
         if value not in allowed:
@@ -332,7 +456,11 @@ class Scene:
             if section not in SCHEMA:
                 raise SceneError(f"unknown section [{section}]; expected one of {', '.join(SCHEMA)}")
         sections: dict[str, Mapping[str, Any]] = {}
+        absent = _absent_sections(raw)
         for section, keys in SCHEMA.items():
+            if section in absent:
+                sections[section] = MappingProxyType({})
+                continue
             supplied = raw.get(section, {})
             if not isinstance(supplied, Mapping):
                 raise SceneError(f"[{section}] must be a table, got {supplied!r}")
@@ -361,6 +489,27 @@ class Scene:
         return scene
 
 
+# Sections that may be left out: the user's parts replace the presets.
+_OPTIONAL = ("part", "rigid")
+
+
+def _absent_sections(raw: Mapping[str, Any]) -> set[str]:
+    """The sections this scene leaves out: [part] and [rigid] unless given; [connector] when
+    [part] is given and [plug] when [rigid] is (and then they must not be)."""
+    absent = {s for s in _OPTIONAL if not raw.get(s)}
+    if "part" not in absent:
+        if raw.get("connector"):
+            raise SceneError("[part] and [connector] both given: the deformable part is one or the other")
+        absent.add("connector")
+        if "rigid" in absent:
+            raise SceneError("[part] needs [rigid]: the preset plug is sized from a [connector]")
+    if "rigid" not in absent:
+        if raw.get("plug"):
+            raise SceneError("[rigid] and [plug] both given: the rigid part is one or the other")
+        absent.add("plug")
+    return absent
+
+
 def with_internal(scene: Scene, changes: Mapping[str, Any]) -> Scene:
     """``scene.replace(changes)`` that may also set internal keys and choices (for tests and
     benchmarks: the solvers, models and settings that are not offered to users)."""
@@ -381,50 +530,129 @@ def connector_geometry(scene: Scene) -> Cantilever:
     return Cantilever(**{k: c[k] for k in keys}, return_angle=c["return_angle"], flat=c["flat"])
 
 
-def motion_stroke(scene: Scene, geom: Cantilever) -> float:
-    """The stroke of the scene's motion, mm (``motion.stroke`` or the latching default)."""
+def motion_stroke(scene: Scene, geom: Cantilever | None) -> float:
+    """The stroke of the scene's straight motion, mm (``motion.stroke`` or, for the preset plug,
+    the latching default)."""
+    stroke = scene["motion"]["stroke"]
+    if stroke is not None:
+        return stroke
     p = scene["plug"]
-    return scene["motion"]["stroke"] or latching_stroke(p["height"], p["clearance"], geom.z_top - geom.length)
+    return latching_stroke(p["height"], p["clearance"], geom.z_top - geom.length)
+
+
+def sdf_kind(scene: Scene) -> str:
+    """``solver.sdf``, or its default: analytic for the preset plug, mesh for a [rigid] file."""
+    return scene["solver"]["sdf"] or ("mesh" if scene["rigid"] else "analytic")
+
+
+def scene_file(scene: Scene, dotted: str) -> Path:
+    """The file a scene key names, relative to the scene file's folder (absolute paths as they
+    are; scenes made in Python: relative to the working directory)."""
+    path = Path(scene.get(dotted)).expanduser()
+    if not path.is_absolute() and scene.source not in ("<dict>", ""):
+        path = Path(scene.source).parent / path
+    return path
+
+
+def motion_keyposes(scene: Scene):
+    """``(t, position, rotation)`` of a waypoint or CSV motion, or None for a straight one."""
+    m = scene["motion"]
+    if m["waypoints"] is not None:
+        w = m["waypoints"]
+        return tuple(np.array([p[k] for p in w], np.float64) for k in ("t", "position", "rotation"))
+    if m["trajectory"] is not None:
+        return read_pose_csv(scene_file(scene, "motion.trajectory"))
+    return None
+
+
+def motion_duration(scene: Scene, geom: Cantilever | None) -> tuple[float, str]:
+    """The motion's duration, s, and how it was set (for messages)."""
+    m = scene["motion"]
+    keys = motion_keyposes(scene)
+    if keys is not None:
+        return float(keys[0][-1]), f"its last pose at t = {keys[0][-1]:g} s"
+    stroke = motion_stroke(scene, geom)
+    duration = stroke / m["speed"] * (2 if m["withdraw"] else 1)
+    return duration, f"{stroke:g} mm at {m['speed']:g} mm/s, {duration:g} s"
+
+
+def _check_files(scene: Scene) -> None:
+    """The motion's keys fit together; the files a scene names exist."""
+    m = scene["motion"]
+    given = [k for k in ("waypoints", "trajectory") if m[k] is not None]
+    if len(given) > 1:
+        raise SceneError("motion.waypoints and motion.trajectory both given: the motion is one or the other")
+    if given:
+        straight = [k for k in ("direction", "stroke") if m[k] is not None] + (
+            ["withdraw"] if m["withdraw"] else []
+        )
+        if straight:
+            raise SceneError(
+                f"motion.{straight[0]} is for a straight insertion, but motion.{given[0]} is given: "
+                "the motion is one or the other"
+            )
+    rigid, part = scene["rigid"], scene["part"]
+    sdf = scene["solver"]["sdf"]
+    if rigid and sdf == "analytic":
+        raise SceneError(
+            "solver.sdf = 'analytic' is the preset plug's formula; a [rigid] file needs 'mesh' or 'neural'"
+        )
+    if rigid and not given and m["stroke"] is None:
+        raise SceneError(
+            "motion.stroke is required with a [rigid] file (the latching default is the preset plug's)"
+        )
+    if part and (part["fixed"] is None) == (part["fixed_box"] is None):
+        raise SceneError("[part] needs exactly one of part.fixed (a group in the file) and part.fixed_box")
+    for dotted in ("part.mesh", "rigid.mesh", "motion.trajectory"):
+        section, key = _split(dotted)
+        if scene[section] and scene[section][key] is not None:
+            path = scene_file(scene, dotted)
+            if not path.is_file():
+                raise SceneError(f"{dotted} = {scene[section][key]!r}: no such file ({path})")
 
 
 def _check_consistency(scene: Scene) -> None:
     """Checks that involve several keys: geometry that cannot be built or cannot be modelled,
     plug sizes, a motion too short for the time step, elements too coarse for the features."""
+    _check_files(scene)
     c = scene["connector"]
-    try:
-        geom = connector_geometry(scene)
-    except ValueError as err:
-        raise SceneError(str(err)) from None
-    if c["undercut"] > _MAX_DEFLECTION_RATIO * c["length"]:
-        raise SceneError(
-            f"connector.undercut = {c['undercut']!r}: the arm must bend its tip {c['undercut']:g} mm on a "
-            f"{c['length']:g} mm length (more than {_MAX_DEFLECTION_RATIO:g} of it): the tip would turn by "
-            f"~{math.degrees(1.5 * c['undercut'] / c['length']):.0f} degrees, far beyond the small strains "
-            "and rotations of jsnap's linear model and of any plastic snap-fit; use a longer arm or a "
-            "smaller undercut"
-        )
-    p = scene["plug"]
-    half = 0.5 * min(p["thickness"] or 1.25 * c["undercut"], p["width"] or c["width"] + 1.0, p["height"])
-    if p["fillet"] > half:
-        raise SceneError(
-            f"plug.fillet = {p['fillet']!r}: must be <= half the plug's smallest side ({half:g} mm)"
-        )
+    geom = None
+    if c:
+        try:
+            geom = connector_geometry(scene)
+        except ValueError as err:
+            raise SceneError(str(err)) from None
+        if c["undercut"] > _MAX_DEFLECTION_RATIO * c["length"]:
+            raise SceneError(
+                f"connector.undercut = {c['undercut']!r}: the arm must bend its tip {c['undercut']:g} mm on a "
+                f"{c['length']:g} mm length (more than {_MAX_DEFLECTION_RATIO:g} of it): the tip would turn by "
+                f"~{math.degrees(1.5 * c['undercut'] / c['length']):.0f} degrees, far beyond the small strains "
+                "and rotations of jsnap's linear model and of any plastic snap-fit; use a longer arm or a "
+                "smaller undercut"
+            )
+    if not scene["rigid"]:
+        p = scene["plug"]
+        half = 0.5 * min(p["thickness"] or 1.25 * c["undercut"], p["width"] or c["width"] + 1.0, p["height"])
+        if p["fillet"] > half:
+            raise SceneError(
+                f"plug.fillet = {p['fillet']!r}: must be <= half the plug's smallest side ({half:g} mm)"
+            )
     ct = scene["contact"]
     if ct["solver"] == "spg" and ct["gradient"] == "unrolled":
         raise SceneError(
             "contact.gradient = 'unrolled' with contact.solver = 'spg': SPG's spectral steps reach "
             "past 2/||W||, so the unrolled iteration's derivative does not settle on the solution's"
         )
-    m, s = scene["motion"], scene["solver"]
-    stroke = motion_stroke(scene, geom)
-    duration = stroke / m["speed"] * (2 if m["withdraw"] else 1)
+    s = scene["solver"]
+    duration, how = motion_duration(scene, geom)
     steps = duration / s["dt"]
     if steps < MIN_STEPS:
         raise SceneError(
-            f"solver.dt = {s['dt']!r}: the motion ({stroke:g} mm at {m['speed']:g} mm/s, {duration:g} s) "
-            f"would take {steps:.3g} steps; at least {MIN_STEPS} are needed to resolve the contact: "
-            f"use solver.dt <= {duration / MIN_STEPS:.3g} s"
+            f"solver.dt = {s['dt']!r}: the motion ({how}) would take {steps:.3g} steps; at least "
+            f"{MIN_STEPS} are needed to resolve the contact: use solver.dt <= {duration / MIN_STEPS:.3g} s"
         )
+    if not c:
+        return
     features = {
         "thickness": c["thickness"],
         "tip_thickness": geom.h_tip,
