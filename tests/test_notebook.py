@@ -38,3 +38,24 @@ def test_fit_material_notebook_runs(tmp_path, monkeypatch):
     m = fit.mask
     rms = lambda F: float(np.sqrt(np.mean((F[m] - fit.measured[m]) ** 2)))  # noqa: E731
     assert rms(fit.fitted) < 0.3 * rms(fit.start)
+
+
+OWN = Path(__file__).parents[1] / "notebooks" / "own_connector.ipynb"
+
+
+@pytest.mark.slow
+def test_own_connector_notebook_runs(tmp_path, monkeypatch):
+    """Two STL files to a force curve and a ParaView series: the notebook runs top to bottom
+    (small settings: the full model on a coarse mesh) and its peak is the shipped hook's within
+    the mesh difference and the tilt's effect."""
+    matplotlib.use("Agg")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("JSNAP_NOTEBOOK_SMALL", "1")
+    nb = json.loads(OWN.read_text())
+    ns = {"__name__": "__main__"}
+    for i, cell in enumerate(c for c in nb["cells"] if c["cell_type"] == "code"):
+        exec(compile("".join(cell["source"]), f"{OWN.name}[code cell {i}]", "exec"), ns)
+    assert os.path.getsize("own_connector.png") > 10_000
+    assert (tmp_path / "own_connector" / "vtu" / "socket.pvd").is_file()
+    assert ns["result"].status() == "ok"
+    assert 4.0 < float(np.max(ns["F"])) < 6.5  # the default hook peaks at 5.1 N

@@ -29,6 +29,7 @@ from jsnap._geometry.scene import connector_geometry, with_internal
 
 MATERIAL = {"youngs_modulus": 2200.0, "poissons_ratio": 0.35, "density": 1.05e-9}
 ROOT_BOX = [[-1.0, -3.0, -0.01], [2.5, 3.0, 0.01]]
+IDENTITY = [1.0, 0.0, 0.0, 0.0]
 TILT = [math.cos(math.radians(1.5)), math.sin(math.radians(1.5)), 0.0, 0.0]  # 3 degrees about x
 
 
@@ -123,7 +124,7 @@ def test_stl_part_tilted_waypoints_run_from_cli_and_api(files, tmp_path, preset_
         "[motion]",
         "waypoints = [",
         *[
-            f"  {{ t = {w['t']!r}, position = {w['position']}, rotation = {w.get('rotation', [1.0, 0, 0, 0])} }},"
+            f"  {{ t = {w['t']!r}, position = {w['position']}, rotation = {w.get('rotation', IDENTITY)} }},"
             for w in wp
         ],
         "]",
@@ -202,7 +203,10 @@ def test_base_wrench_balances_the_contact_in_a_quasi_static_hold(files):
     nodes, free = np.asarray(model.mesh.nodes), np.asarray(model.mesh.free)
     fixed = np.setdiff1d(np.arange(nodes.shape[0]), free[0::3] // 3)
     o = nodes[fixed].mean(axis=0)
-    moment = np.cross(np.asarray(res.contact_point)[-1] - o, gamma).sum(axis=0)
+    # Linear elasticity balances forces on the undeformed part: the contact forces act at the
+    # candidates' rest positions (their nodal forces have that resultant and moment).
+    rest = np.asarray(model.samples.rest)[np.asarray(res.contact_index)[-1]]
+    moment = np.cross(rest - o, gamma).sum(axis=0)
     assert np.linalg.norm(np.asarray(res.base_force)[-1] + total) < 1e-6 * np.linalg.norm(total)
     assert np.linalg.norm(np.asarray(res.base_moment)[-1] + moment) < 1e-6 * np.linalg.norm(moment)
 
@@ -244,7 +248,7 @@ def test_pose_csv_is_read_and_checked(tmp_path):
     good.write_text("t,x,y,z,qw,qx,qy,qz\n0,0,0,0,1,0,0,0\n0.1,0,0,-1,1,0,0,0\n")
     from jsnap._geometry.motion import read_pose_csv
 
-    t, pos, rot = read_pose_csv(good)
+    t, _, _ = read_pose_csv(good)
     np.testing.assert_array_equal(t, [0.0, 0.1])
     bad_q = tmp_path / "bad_q.csv"
     bad_q.write_text("0,0,0,0,1,0,0,0\n0.1,0,0,-1,1,0.1,0,0\n")
@@ -327,7 +331,12 @@ def test_part_in_wrong_units_is_refused(files):
         ({"motion.direction": [0.0, 0.0, 0.0]}, r"motion.direction = .*must not be zero"),
         ({"motion.waypoints": [{"t": 0.0, "position": [0, 0, 0]}]}, r"at least two poses"),
         (
-            {"motion.waypoints": [{"t": 0.0, "position": [0, 0, 0]}, {"t": 0.1, "position": [0, 0, 1], "q": 1}]},
+            {
+                "motion.waypoints": [
+                    {"t": 0.0, "position": [0, 0, 0]},
+                    {"t": 0.1, "position": [0, 0, 1], "q": 0},
+                ]
+            },
             r"motion.waypoints\[1\]: unknown key",
         ),
     ],

@@ -106,6 +106,14 @@ def _sdf_accuracy(d):
     )
 
 
+def _own_parts(d):
+    h = d["headline"]
+    diffs = ", ".join(
+        f"h {size:g}: {100 * dp:+.2f} %" for size, dp in zip(h["sizes"], h["stl_vs_tet_peak"], strict=True)
+    )
+    return f"STL path against the tet file, peak: {diffs}"
+
+
 def _sdf_scene(d):
     runs = d["runs"]
     n = runs["neural"]
@@ -311,6 +319,13 @@ BENCHMARKS = [
         timed=False,
     ),
     Bench("sdf_accuracy", "neural SDF accuracy and training time (default plug)", False, _sdf_accuracy),
+    Bench(
+        "own_parts",
+        "one part from a tet file and from an STL, under refinement",
+        False,
+        _own_parts,
+        timed=False,
+    ),
     Bench("sdf_speed", "SDF query speed: neural against exact mesh", True, _sdf_speed),
     Bench("contact_squeeze", "APGD against PGS on the symmetric squeeze", True, _contact_squeeze),
     Bench(

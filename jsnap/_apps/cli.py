@@ -36,12 +36,16 @@ def train_sdf(args) -> int:
         config = nsdf.NeuralSDFConfig(**settings)
         if args.mesh is None:
             import jsnap
+            from jsnap._geometry.part import load_rigid
             from jsnap._geometry.plug import default_plug
-            from jsnap._geometry.scene import connector_geometry
+            from jsnap._geometry.scene import connector_geometry, scene_file
 
             scene = jsnap.load_scene(args.scene)
-            mesh = default_plug(scene["plug"], connector_geometry(scene)).mesh()
-            what = f"the plug of {scene.source}"
+            if scene["rigid"]:
+                mesh = load_rigid(scene_file(scene, "rigid.mesh"), units=scene["rigid"]["units"]).mesh
+            else:
+                mesh = default_plug(scene["plug"], connector_geometry(scene)).mesh()
+            what = f"the rigid part of {scene.source}"
         else:
             mesh = nsdf.load_mesh(args.mesh)
             what = args.mesh

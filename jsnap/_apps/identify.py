@@ -633,6 +633,17 @@ class _Run:
 
 def _problem(model: Model, base: Params, names, n_steps: int) -> _Problem:
     traj = np.asarray(model.trajectory())
+    if (
+        traj.shape[1] != 3
+        or np.ptp(traj[:, :2], axis=0).max() > 0
+        or np.any(np.asarray(model.axis) != [0, 0, -1])
+    ):
+        # The motion is rebuilt from its z column here (the time shift and the path offset move
+        # it along z): a turning or slanted path would be replaced by another one.
+        raise ValueError(
+            "identification takes a straight insertion along -z (the presets' motion); this model's "
+            "rigid part turns or moves along another direction"
+        )
     t_tab = np.arange(traj.shape[0]) * model.dt
     return _Problem(
         model=model,

@@ -33,8 +33,8 @@ _SECTIONS = {
     "relative to the scene file.",
     "rigid": "The rigid part from a file, instead of [plug]: a closed surface whose coordinates are "
     "its pose at t = 0 in the frame of the fixed base; its frame's origin is its volume centroid. "
-    "Its signed distance is the exact mesh distance (solver.sdf = \"mesh\", the default here) or a "
-    "network trained once and cached (\"neural\").",
+    'Its signed distance is the exact mesh distance (solver.sdf = "mesh", the default here) or a '
+    'network trained once and cached ("neural").',
     "material": "The deformable part's linear elastic material and its Rayleigh damping "
     "(D = rayleigh_alpha M + rayleigh_beta K).",
     "contact": "Frictional contact between the parts and its solver.",
@@ -141,7 +141,7 @@ def _rules() -> list[str]:
         "several steps. The error gives the largest `solver.dt` that works.",
         "**The parts are presets or files, one of each.** `[part]` replaces `[connector]` and "
         "needs `[rigid]` (the preset plug is sized from the connector); `[rigid]` replaces `[plug]`. "
-        "`[part]` takes exactly one of `part.fixed` and `part.fixed_box`; `solver.sdf = \"analytic\"` "
+        '`[part]` takes exactly one of `part.fixed` and `part.fixed_box`; `solver.sdf = "analytic"` '
         "is the preset plug's formula and is refused with a `[rigid]` file, which also needs "
         "`motion.stroke` for a straight insertion. The files named must exist (paths relative to the "
         "scene file).",
