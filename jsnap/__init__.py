@@ -9,6 +9,7 @@ Units everywhere: mm, N, MPa, s, tonne (density in t/mm^3).
     result.insertion_force                # (steps,) N
     jsnap.rollout_batch(model, params)    # many parameter sets, motions or start poses at once
     jsnap.identify(model, "measured.csv") # fit E, friction, damping to a measured force
+    jsnap.peak_strain(model, result)      # peak strain and stress (a rollout with keep_x=True)
 
 Importing jsnap changes no process-wide setting: it computes in 64 bits only inside its own
 functions (``jax.enable_x64`` scoped to each call), and XLA's CPU flags are an explicit opt-in
@@ -35,6 +36,10 @@ _LAZY = {
     "Measurement": "jsnap._apps.identify",
     "MeasurementError": "jsnap._apps.identify",
     "load_measurement": "jsnap._apps.identify",
+    "strain": "jsnap._build.strain",
+    "Strain": "jsnap._build.strain",
+    "peak_strain": "jsnap._build.strain",
+    "PeakStrain": "jsnap._build.strain",
 }
 
 
@@ -60,6 +65,7 @@ __all__ = [
     "MeasurementError",
     "Model",
     "Params",
+    "PeakStrain",
     "Prepared",
     "Result",
     "Scene",
@@ -67,14 +73,17 @@ __all__ = [
     "SceneWarning",
     "SimulationError",
     "State",
+    "Strain",
     "build",
     "configure_xla_cpu",
     "identify",
     "init_state",
     "load_measurement",
     "load_scene",
+    "peak_strain",
     "prepare",
     "rollout",
     "rollout_batch",
     "step",
+    "strain",
 ]

@@ -6,8 +6,11 @@ Outputs in the ``--out`` folder (checked before anything is built):
   the drive's wrench (force and moment), the rigid part's pose (centre and unit quaternion),
   energy and the step's status flags;
 - ``forces.png``: the force curves against travel and time;
-- ``vtu/socket.pvd`` with ``socket_*.vtu``: the deformed part for ParaView;
-- ``summary.json``: the strict-JSON summary (also printed with ``--json``).
+- ``vtu/socket.pvd`` with ``socket_*.vtu``: the deformed part for ParaView, with each element's
+  largest principal strain and von Mises stress (cell data);
+- ``summary.json``: the strict-JSON summary (also printed with ``--json``), with the peak strain
+  and stress of the whole run (every step; over the whole part, and over the arm below the hook,
+  whose bending strain is the design guide's: ``jsnap._build.strain``).
 
 Timings are apart: ``build_seconds`` (mesh, assembly, reduction, the parameter-dependent
 operator), ``compile_seconds`` (XLA), and ``steps_per_second`` of the compiled rollout alone.
@@ -26,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["OutputError", "check_out_dir", "design_guide_force", "simulate"]
+__all__ = ["OutputError", "check_out_dir", "design_guide_force", "design_guide_strain", "simulate"]
 
 
 class OutputError(ValueError):
@@ -54,19 +57,34 @@ def check_out_dir(out) -> Path:
     return path
 
 
+def design_guide_strain(scene) -> float | None:
+    """Snap-fit design-guide strain at the root when the hook is deflected by the undercut:
+    eps = 1.5 h y / L^2 (constant arm) or h y / (1.09 L^2) (arm tapered to h/2), dimensionless
+    (None for a part from a file).
+
+    Beam theory for a tip deflection y of a cantilever of length L and root thickness h: no
+    stress concentration at the root, the deflection applied at z = L.
+    """
+    c = scene["connector"]
+    if not c:
+        return None
+    L, h, y = c["length"], c["thickness"], c["undercut"]
+    h_tip = c["tip_thickness"] or h
+    return y * h / (1.09 * L**2) if abs(h_tip - h / 2) < 1e-9 else 1.5 * h * y / L**2
+
+
 def design_guide_force(scene) -> float | None:
     """Snap-fit design-guide mating force W = P (mu + tan a) / (1 - mu tan a), N, of the
     cantilever preset (None for a part from a file).
 
-    P = b h^2 E eps / (6 L) with eps = 1.5 h y / L^2 (constant arm) or h y / (1.09 L^2) (arm
-    tapered to h/2); a beam-theory estimate (see the validation page for how far it is off).
+    P = b h^2 E eps / (6 L) with eps from :func:`design_guide_strain`; a beam-theory estimate
+    (see the validation page for how far it is off).
     """
     c, m = scene["connector"], scene["material"]
     if not c:
         return None
-    L, h, b, y = c["length"], c["thickness"], c["width"], c["undercut"]
-    h_tip = c["tip_thickness"] or h
-    eps = y * h / (1.09 * L**2) if abs(h_tip - h / 2) < 1e-9 else 1.5 * h * y / L**2
+    L, h, b = c["length"], c["thickness"], c["width"]
+    eps = design_guide_strain(scene)
     P = b * h**2 * m["youngs_modulus"] * eps / (6 * L)
     mu, ta = scene["contact"]["friction"], math.tan(math.radians(c["lead_angle"]))
     return P * (mu + ta) / (1 - mu * ta)
@@ -153,22 +171,52 @@ def write_forces_csv(res, path: Path) -> Path:
     return path
 
 
-def write_series(model, res, out: Path, frames: int = 100) -> Path:
-    """The deformed part at about ``frames`` times, as a ParaView series (``vtu/socket.pvd``)."""
-    import jax
-
+def write_series(model, res, out: Path, arm_length: float | None, frames: int = 100):
+    """The strain of every step and the deformed part at about ``frames`` times as a ParaView
+    series (``vtu/socket.pvd``, with each element's largest principal strain and von Mises
+    stress as cell data). Returns ``(pvd path, {"part": PeakStrain, "arm": PeakStrain})``:
+    the peaks of the whole run over every element and over the arm's (every vertex at
+    ``z <= arm_length``, mm; no "arm" for ``arm_length = None``, a part from a file)."""
+    from jsnap._build.strain import scan
     from jsnap._geometry.mesh import write_vtu_series
 
-    nodes, cells, free = (np.asarray(a) for a in (model.mesh.nodes, model.mesh.cells, model.mesh.free))
-    every = max(1, res.x.shape[0] // frames)
-    with jax.enable_x64(True):
-        x = jax.numpy.asarray(res.x[::every], jax.numpy.float64)
-        disp_free = np.asarray(jax.vmap(model.part.free_displacement)(x))
-    disp = np.zeros((disp_free.shape[0], nodes.size))
-    disp[:, free] = disp_free
-    return write_vtu_series(
-        out / "vtu", "socket", nodes, cells, disp.reshape(-1, nodes.shape[0], 3), np.asarray(res.t)[::every]
+    x = np.asarray(res.x)
+    keep = np.arange(0, x.shape[0], max(1, x.shape[0] // frames))
+    E, nu = float(model.params.E), float(model.params.nu)
+    nodes, cells = np.asarray(model.mesh.nodes), np.asarray(model.mesh.cells)
+    regions = {"part": None}
+    if arm_length is not None:
+        regions["arm"] = np.all(nodes[cells[:, :4], 2] <= arm_length * (1 + 1e-12), axis=1)
+    t = np.asarray(res.t, dtype=np.float64)
+    peaks, kept = scan(model, x, t, E, nu, keep=keep, regions=regions)
+    cell_data = {"max_principal_strain": kept["max_principal"], "von_mises_stress_MPa": kept["von_mises"]}
+    pvd = write_vtu_series(
+        out / "vtu",
+        "socket",
+        nodes,
+        cells,
+        kept["displacement"],
+        t[keep],
+        cell_data=cell_data,
     )
+    return pvd, peaks
+
+
+def _strain_fields(prefix: str, peak, res) -> dict:
+    """The summary's fields of one :class:`jsnap.PeakStrain` (None where no step is finite, or
+    for no peak: the arm of a part from a file)."""
+    if peak is None:
+        names = ("peak_strain", "peak_strain_step", "peak_strain_time_s", "peak_strain_travel_mm")
+        return {f"{prefix}{k}": None for k in (*names, "peak_strain_position_mm", "peak_von_mises_MPa")}
+    k = peak.step if peak.step >= 0 else None
+    return {
+        f"{prefix}peak_strain": _finite(peak.max_principal) if k is not None else None,
+        f"{prefix}peak_strain_step": k,
+        f"{prefix}peak_strain_time_s": _finite(peak.time) if k is not None else None,
+        f"{prefix}peak_strain_travel_mm": _finite(np.asarray(res.travel)[k]) if k is not None else None,
+        f"{prefix}peak_strain_position_mm": [_finite(c) for c in peak.position] if k is not None else None,
+        f"{prefix}peak_von_mises_MPa": _finite(peak.von_mises) if peak.von_mises_step >= 0 else None,
+    }
 
 
 def _say(quiet: bool, message: str) -> None:
@@ -216,7 +264,9 @@ def simulate(args) -> int:
     name = Path(scene.source).name
     title = f"jsnap: {name}, {model.method} {model.element}, {model.n_dof} dof, dt = {model.dt * 1e3:g} ms"
     png = plot_forces(res, out, guide, title)
-    pvd = write_series(model, res, out)
+    t3 = time.perf_counter()
+    pvd, peaks = write_series(model, res, out, scene["connector"].get("length"))
+    t_strain = time.perf_counter() - t3
     warnings = []
     residual = np.asarray(res.residual)
     loose = residual > 100 * scene["contact"]["tolerance"]
@@ -256,6 +306,10 @@ def simulate(args) -> int:
         "peak_base_moment_Nmm": _finite(np.nanmax(np.linalg.norm(np.asarray(res.base_moment), axis=1)))
         if np.isfinite(np.asarray(res.base_moment)).any()
         else None,
+        **_strain_fields("", peaks["part"], res),
+        **_strain_fields("arm_", peaks.get("arm"), res),
+        "design_guide_strain": design_guide_strain(scene),
+        "strain_seconds": t_strain,
         "max_contact_overflow": int(np.max(np.asarray(res.overflow))),
         "max_solver_residual": _finite(np.nanmax(residual)) if np.isfinite(residual).any() else None,
         "outputs": {"csv": str(csv), "png": str(png), "pvd": str(pvd)},
@@ -276,6 +330,17 @@ def simulate(args) -> int:
                 f"{peak:.3f} N at {at:.3f} mm{'' if guide is None else f' (design guide {guide:.3f} N)'}; "
                 f"{rate:.0f} steps/s "
                 f"({real:.1f}x real time); build {t_build:.1f} s, compile {t_compile:.1f} s; wrote {out}/"
+            )
+        for prefix, what in (("arm_", "in the arm"), ("", "over the part")):
+            if summary[f"{prefix}peak_strain"] is None:
+                continue
+            eps, where = summary[f"{prefix}peak_strain"], summary[f"{prefix}peak_strain_position_mm"]
+            guide_eps = f" (design guide {100 * summary['design_guide_strain']:.3f} %)" if prefix else ""
+            print(
+                f"jsnap: peak strain {what} {100 * eps:.3f} %{guide_eps}, largest principal, at travel "
+                f"{summary[f'{prefix}peak_strain_travel_mm']:.3f} mm, (x, y, z) = ({where[0]:.2f}, "
+                f"{where[1]:.2f}, {where[2]:.2f}) mm; von Mises stress up to "
+                f"{summary[f'{prefix}peak_von_mises_MPa']:.1f} MPa"
             )
     if status != "ok":
         print(f"jsnap: error: {status}", file=sys.stderr)

@@ -205,6 +205,7 @@ def write_vtu_series(
     displacements: np.ndarray,
     times: np.ndarray,
     deformed: bool = False,
+    cell_data: dict[str, np.ndarray] | None = None,
 ) -> Path:
     """Write a time series as ``stem_0000.vtu, stem_0001.vtu, …`` plus a ParaView collection
     ``stem.pvd`` listing each file with its time; return the ``.pvd`` path.
@@ -219,6 +220,8 @@ def write_vtu_series(
         times: (T,) times, s.
         deformed: write the deformed positions ``points + displacement`` as the geometry
             instead of the reference ones.
+        cell_data: name -> (T, m) or (T, m, k) per-element fields, frame ``k`` written with
+            file ``k`` (e.g. an element's largest strain).
     """
     points = np.asarray(points, dtype=np.float64)
     u = np.asarray(displacements, dtype=np.float64)
@@ -227,6 +230,13 @@ def write_vtu_series(
         raise ValueError(
             f"displacements must be (T, n, 3) = ({times.size}, {points.shape[0]}, 3), got {u.shape}"
         )
+    n_cells = np.shape(cells)[0]
+    cell_data = {k: np.asarray(v) for k, v in (cell_data or {}).items()}
+    for name, data in cell_data.items():
+        if data.ndim < 2 or data.shape[:2] != (times.size, n_cells):
+            raise ValueError(
+                f"cell_data[{name!r}] must be ({times.size}, {n_cells}, ...) (frames, cells), got {data.shape}"
+            )
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     width = max(4, len(str(max(times.size - 1, 0))))
@@ -234,7 +244,8 @@ def write_vtu_series(
     for k in range(times.size):
         name = f"{stem}_{k:0{width}d}.vtu"
         geometry = points + u[k] if deformed else points
-        write_vtu(directory / name, geometry, cells, point_data={"displacement": u[k]})
+        frame = {key: data[k] for key, data in cell_data.items()}
+        write_vtu(directory / name, geometry, cells, point_data={"displacement": u[k]}, cell_data=frame)
         time = repr(float(times[k]))  # shortest exact decimal
         entries.append(f'    <DataSet timestep="{time}" part="0" file={quoteattr(name)}/>')
     pvd = directory / f"{stem}.pvd"
