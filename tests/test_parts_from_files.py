@@ -150,7 +150,9 @@ def test_stl_part_tilted_waypoints_run_from_cli_and_api(files, tmp_path, preset_
     model = jsnap.build(jsnap.load_scene(scene_path))
     res = jsnap.rollout(model).check()
     peak = float(np.asarray(res.insertion_force).max())
-    assert peak == pytest.approx(summary["peak_insertion_force_N"], rel=1e-9)
+    # The command line opts in to XLA's small-loop option: the same model, compiled otherwise,
+    # agrees to the contact solve's tolerance.
+    assert peak == pytest.approx(summary["peak_insertion_force_N"], rel=1e-6)
     assert abs(peak / preset_peak - 1) < 0.05
     # The rigid part ends where its last waypoint puts it, turned by the tilt.
     start = np.asarray(model.plug_start)
@@ -171,10 +173,13 @@ def test_turned_file_and_turned_back_pose_equal_the_plain_file(files, tmp_path):
     turned.apply_translation(-c)
     turned.vertices = turned.vertices @ quat_matrix(q).T
     turned.apply_translation(c)
-    turned.export(tmp_path / "turned.stl")
+    # OBJ at 17 digits keeps float64 coordinates (STL rounds them to float32, which would move
+    # the turned surface by ~1e-6 mm against the plain one).
+    turned.export(tmp_path / "turned.obj", digits=17)
+    plug.export(tmp_path / "plain.obj", digits=17)
     down = [{"t": 0.0, "position": [0.0, 0.0, 0.0]}, {"t": 0.23, "position": [0.0, 0.0, -2.3]}]
     forces = []
-    for stl, rot in ((files / "plug.stl", [1.0, 0, 0, 0]), (tmp_path / "turned.stl", list(q_inv))):
+    for stl, rot in ((tmp_path / "plain.obj", [1.0, 0, 0, 0]), (tmp_path / "turned.obj", list(q_inv))):
         motion = {"waypoints": [{**w, "rotation": rot} for w in down]}
         scene = _scene(files, {"mesh": str(files / "hook.inp"), "fixed": "root"}, motion)
         # Solved tightly: the two runs differ by round-off in the rigid part's frame, which a
