@@ -11,6 +11,10 @@ factorisation with W ordered last: then ``L U = P A P'`` has ``L_WW U_WW = S`` a
 block (:func:`schur_complement`), so no solve against the |W| unit vectors is needed; those
 solves, one per dof of W, cost as much as that many triangular passes through the whole factor.
 
+SuperLU's supernodal solves call BLAS on small blocks, one supernode at a time; a threaded BLAS
+spends more on waking its threads for each than it saves (several times slower on 2 cores, worse
+on a loaded machine), so the factorisations and solves here run with one BLAS thread.
+
 Units: whatever the matrix carries.
 """
 
@@ -19,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from threadpoolctl import threadpool_limits
 
 from jsnap._build.memory import require
 
@@ -96,13 +101,15 @@ class Factor:
     def __init__(self, A: sp.spmatrix, perm: np.ndarray):
         self.n = A.shape[0]
         self.perm = perm
-        self.lu = spla.splu(sp.csc_matrix(A)[perm][:, perm].tocsc(), permc_spec="NATURAL", **_SPLU)
+        with threadpool_limits(1):
+            self.lu = spla.splu(sp.csc_matrix(A)[perm][:, perm].tocsc(), permc_spec="NATURAL", **_SPLU)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """``A^-1 b`` for b (n,) or (n, k)."""
         b = np.asarray(b, dtype=np.float64)
         x = np.empty_like(b)
-        x[self.perm] = self.lu.solve(np.asfortranarray(b[self.perm]))
+        with threadpool_limits(1):
+            x[self.perm] = self.lu.solve(np.asfortranarray(b[self.perm]))
         return x
 
 
@@ -140,7 +147,8 @@ def schur_complement(A: sp.spmatrix, keep: np.ndarray, what: str, hint: str) -> 
     A = sp.csc_matrix(A)[perm][:, perm].tocsc()
     sigma = float(A.diagonal()[n - m :].max()) if m else 0.0
     A = (A + sp.diags(np.r_[np.zeros(n - m), np.full(m, sigma)])).tocsc()
-    lu = spla.splu(A, permc_spec="NATURAL", **_SPLU)
+    with threadpool_limits(1):
+        lu = spla.splu(A, permc_spec="NATURAL", **_SPLU)
     del A
     pc = lu.perm_c
     # SuperLU post-orders the elimination tree; W stays last when the trailing block is dense

@@ -397,7 +397,9 @@ def _lowest_modes(K, M, lu, k: int):
     return vec
 
 
-def _greedy_energy(X: np.ndarray, S: np.ndarray, Q0: np.ndarray, ref: np.ndarray, tol: float) -> np.ndarray:
+def _greedy_energy(
+    X: np.ndarray, S: np.ndarray, Q0: np.ndarray, ref: np.ndarray, tol: float, SX: np.ndarray | None = None
+) -> np.ndarray:
     """Greedy energy-norm span: vectors to add to Q0 so that every column x_j of X is represented
     to ``|x_j - P x_j|_S^2 <= tol ref_j`` (P the S-orthogonal projection onto the span).
 
@@ -408,6 +410,7 @@ def _greedy_energy(X: np.ndarray, S: np.ndarray, Q0: np.ndarray, ref: np.ndarray
     Args:
         X: (m, n) candidate vectors.   S: (m, m) symmetric positive definite.
         Q0: (m, k) vectors already in the basis.   ref: (n,) > 0 reference per column.
+        SX: ``S @ X`` when the caller has it for less than the product costs, or None.
 
     Returns:
         (m, a) the added vectors, S-orthonormal and S-orthogonal to Q0.
@@ -417,7 +420,7 @@ def _greedy_energy(X: np.ndarray, S: np.ndarray, Q0: np.ndarray, ref: np.ndarray
         Q = Q0 @ np.linalg.inv(np.linalg.cholesky(0.5 * (G + G.T))).T  # S-orthonormal
     else:
         Q = Q0
-    SX = S @ X
+    SX = S @ X if SX is None else SX
     A = Q.T @ SX
     lost = np.einsum("mn,mn->n", X, SX) - np.einsum("kn,kn->n", A, A)
     added = []
@@ -484,8 +487,10 @@ def interface_shapes(asm: Assembly, seg: Segmentation, blocks, lame0, cnodes, ca
     gamma = np.unique(np.concatenate([seg.nodes[i][seg.interface_nodes(i)] for i in range(seg.n_segments)]))
     c3, g3 = 3 * cnodes.size, 3 * gamma.size
     m = c3 + g3
-    # S_W, its contact and interface blocks, and the factors of the dense algebra below.
-    require(5 * 8 * m * m, f"the condensed stiffness of the contact and interface dofs ({m} dof)", _MESH_HINT)
+    # S_W, its contact and interface blocks and the factors of the dense algebra below; the
+    # load cases, the traces and their S_G products (m x Q each, at most).
+    need = 8 * m * (5 * m + 4 * cases.shape[1])
+    require(need, f"the condensed stiffness of the contact and interface dofs ({m} dof)", _MESH_HINT)
     lam0, mu0 = lame0
     S_W = np.zeros((m, m))
     for i in range(seg.n_segments):
@@ -512,10 +517,11 @@ def interface_shapes(asm: Assembly, seg: Segmentation, blocks, lame0, cnodes, ca
     S_G = 0.5 * (S_G + S_G.T)
     traces_unit = -sla.cho_solve(sla.cho_factor(S_G), Y.T)  # u_G for unit loads at the contact dofs
     C = sla.cho_solve(cho_c, np.eye(c3)) - Y @ traces_unit  # static compliance of the contact dofs
-    compliance = np.einsum("aq,ab,bq->q", cases, 0.5 * (C + C.T), cases)
+    compliance = np.sum(cases * (0.5 * (C + C.T) @ cases), axis=0)
     traces = traces_unit @ cases
     rigid, _ = np.linalg.qr(_rigid_shapes(asm.nodes[gamma]))
-    extra = _greedy_energy(traces, S_G, rigid, compliance, tol)
+    # S_G traces = -S_cG' S_cc^-1 cases: the greedy's S X without a (3k)^2 x Q product.
+    extra = _greedy_energy(traces, S_G, rigid, compliance, tol, SX=-Y.T @ cases)
     psi, _ = np.linalg.qr(np.concatenate([rigid, extra], axis=1))
     return gamma, psi, compliance
 
@@ -590,9 +596,11 @@ def segment_basis(
     else:  # the interface shapes' accelerations load the interior through the mass
         B = np.asarray(M_II @ C_I + M_IG @ psi)
         span = B.shape[1]
-    # The subspace (n x s) and the few copies of it that orthonormalising and projecting make.
+    # The subspace (n x s) and the few copies of it that orthonormalising and projecting make;
+    # the balancing's (s, s, 2, 2) complex Gramian terms (position_gramians), a few at once.
     s_max = min(n_modes, inner.size) + span
-    require(5 * 8 * inner.size * s_max, f"the balancing subspace ({inner.size} x {s_max})", _MESH_HINT)
+    need = 5 * 8 * inner.size * s_max + 4 * 64 * s_max**2
+    require(need, f"the balancing subspace ({inner.size} x {s_max})", _MESH_HINT)
     if contact is not None:
         X = _unit_responses(lu, inner.size, at)  # K_II^-1 of a unit force on each contact dof
     else:
@@ -607,7 +615,7 @@ def segment_basis(
         hsv = hsv / hsv[0]
         if contact is not None:  # static correction: compliance lost below tol x the full model's
             L = U[at].T @ cases
-            Z = _greedy_energy(np.linalg.solve(Kh, L), Kh, Y, compliance, tol)
+            Z = _greedy_energy(np.linalg.solve(Kh, L), Kh, Y, compliance, tol, SX=L)
             Y = np.concatenate([Y, Z], axis=1)
             n_static = Z.shape[1]
     else:
