@@ -157,7 +157,7 @@ def _scale(d):
     out = (
         f"{h['largest_full_dof']} dof → {sum(h['largest_orders'])} coordinates: reduced in "
         f"{h['largest_build_seconds']:.0f} s, peak {h['largest_build_peak_rss_gb']:.1f} GB, "
-        f"{h['largest_scan_steps_per_second']:.0f} steps/s"
+        f"{h['largest_scan_steps_per_second']:.0f} steps/s ({h['largest_quoted_dtype']})"
     )
     g = h.get("design_guide_hook")
     if g:

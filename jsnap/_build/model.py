@@ -124,7 +124,7 @@ def check_memory(n_dof: int, method: str, available: int | None = None) -> int:
     dense = method in ("full", "modal", "segmented")
     if dense:
         estimate = _DENSE_COPIES * 8 * n_dof**2
-        hint = "solver.method = 'reduced' (no n x n matrix) or a larger solver.mesh_size"
+        hint = "solver.method = 'reduced' or a larger solver.mesh_size"
     else:
         estimate = _SPARSE_BYTES_PER_DOF * n_dof + 2 * 8 * n_dof * _RECON_COLUMNS
         hint = "a larger solver.mesh_size"
