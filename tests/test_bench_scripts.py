@@ -25,7 +25,7 @@ def _load(stem):
     return json.loads(path.read_text())
 
 
-@pytest.mark.parametrize("name", ["frequency", "throughput", "precision", "xla_option"])
+@pytest.mark.parametrize("name", ["frequency", "throughput", "precision", "xla_option", "scale"])
 def test_registered_with_quick_variant(name):
     bench = {b.name: b for b in _bench.available(ROOT)}
     assert name in bench and bench[name].quick
@@ -95,3 +95,23 @@ def test_xla_option_headline():
     # The option changes how the solver's loops are compiled, not what they compute.
     assert h["float64_force_max_abs_diff_rel_peak"] < 1e-6
     assert "steps/s" in _bench._xla_option(d)
+
+
+def test_scale_headline():
+    """The committed scale run: at least four sizes of the default hook up to ~100k dofs, each
+    measured in its own process, the reduced model far smaller than the full one, a valid rollout
+    behind every quoted rate, and the design-guide hook's peak force beside the guide's."""
+    d = _load("scale")
+    rows = [r for r in d["rows"] if r["part"] == "default_hook"]
+    sizes = sorted(r["full_dof"] for r in rows)
+    assert len(sizes) >= 4 and sizes[-1] >= 90_000
+    for r in d["rows"]:
+        assert sum(r["orders"]) < r["full_dof"] / 20
+        assert r["build_peak_rss_bytes"] > 0 and r["reduction_seconds"] > 0
+        assert r[r["quoted_dtype"]]["ok"] and r["scan_steps_per_second"] > 0
+    h = d["headline"]
+    assert h["largest_full_dof"] == sizes[-1]
+    assert set(h["targets_met"]) == {"build_seconds", "peak_rss_gb", "steps_per_second"}
+    g = h["design_guide_hook"]
+    assert g["peak_N"] > 0 and g["peak_over_guide"] == pytest.approx(g["peak_N"] / g["design_guide_N"])
+    assert "steps/s" in _bench._scale(d)

@@ -176,6 +176,22 @@ def _reduction_speed(d):
     )
 
 
+def _scale(d):
+    h = d["headline"]
+    out = (
+        f"{h['largest_full_dof']} dof → {sum(h['largest_orders'])} coordinates: reduced in "
+        f"{h['largest_build_seconds']:.0f} s, peak {h['largest_build_peak_rss_gb']:.1f} GB, "
+        f"{h['largest_scan_steps_per_second']:.0f} steps/s ({h['largest_quoted_dtype']})"
+    )
+    g = h.get("design_guide_hook")
+    if g:
+        out += (
+            f"; design-guide hook ({g['full_dof']} dof) peak {g['peak_N']:.1f} N vs guide "
+            f"{g['design_guide_N']:.1f} N"
+        )
+    return out
+
+
 def _reduction_accuracy(d):
     parts = [
         f"{k}: {' + '.join(map(str, v['orders']))}, RMSE {100 * v['rmse_float64']:.2f} %"
@@ -377,6 +393,7 @@ BENCHMARKS = [
         timed=False,
     ),
     Bench("reduction_speed", "segmented / reduced models: accuracy and step rate", True, _reduction_speed),
+    Bench("scale", "large parts: reduced build time, peak memory, orders and step rate vs size", True, _scale),
     Bench(
         "reduction_accuracy",
         "segmented / reduced against full: k_c, tolerance",

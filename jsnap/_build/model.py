@@ -9,7 +9,6 @@ its memory and refuses with a message naming the setting to change. Units: mm, N
 
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import dataclass, field
 
@@ -18,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jsnap._build.fem import Assembly, assemble, output_rows, sparse_blocks
+from jsnap._build.memory import BuildError, available_memory, require
 from jsnap._build.modal import modal_part
 from jsnap._build.neural_sdf import load_or_train
 from jsnap._build.reduce import build_part
@@ -50,7 +50,9 @@ from jsnap._geometry.scene import (
     sdf_kind,
 )
 
-__all__ = ["BuildError", "BuildReport", "build", "build_model", "params_from_scene"]
+__all__ = [
+    "BuildError", "BuildReport", "available_memory", "build", "build_model", "check_memory", "params_from_scene",
+]  # fmt: skip
 
 _SOLVERS = {"apgd": APGD, "spg": SPG, "admm": ADMM, "pgs": PGS}
 # Slack on the mesh SDF's lower bound (the analytic rounded box it was tessellated from): covers
@@ -64,15 +66,11 @@ _NEURAL_SLACK = 5e-2
 # factor, the inverse and the symmetrised copies) or its modes computed (K, M, the eigenvectors
 # and LAPACK's workspace).
 _DENSE_COPIES = 6
-# Columns of the reduction's dense n x k arrays, at most (see check_memory).
-_REDUCTION_COLUMNS = 2000
-# Fraction of the available memory a build may plan to use.
-_MEMORY_SHARE = 0.8
-
-
-class BuildError(SceneError):
-    """A scene that is valid but cannot be built here (memory, a path that never makes contact);
-    the message names the setting to change."""
+# Bytes per dof of the assembled blocks (K_lam, K_mu, M1 and the stiffness made of them: P2
+# rows hold ~80 nonzeros of 12 bytes, float64 and int32 index) and of the reduced model's
+# largest dense array, the (n, r) reconstruction of the free dofs (r up to ~2000 columns).
+_SPARSE_BYTES_PER_DOF = 4 * 80 * 12
+_RECON_COLUMNS = 2000
 
 
 @dataclass
@@ -122,18 +120,6 @@ def rollout_dtype(scene: Scene) -> str:
     return s["dtype"] or ("float64" if s["method"] in ("full", "modal") else "float32")
 
 
-def available_memory() -> int:
-    """Bytes of memory available to this process (Linux's MemAvailable, else physical memory)."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-
-
 def _estimate_dof(mesh, element: str) -> int:
     """Free dofs the assembly will have (P2: vertices and edge midpoints), before assembling."""
     nodes = mesh.points.shape[0]
@@ -145,20 +131,20 @@ def _estimate_dof(mesh, element: str) -> int:
 
 def check_memory(n_dof: int, method: str, available: int | None = None) -> int:
     """Estimated bytes of the build and ``prepare`` of an ``n_dof`` part by ``method``; raises
-    :class:`BuildError` naming the settings to change when it would not fit in memory."""
+    :class:`BuildError` naming the settings to change when it would not fit in memory.
+
+    The dense models (full, modal, segmented) hold a few n x n matrices. The reduced one never
+    does: its build is checked here for the assembled sparse blocks and its (n, r) output arrays,
+    and again before each sparse factorisation and dense subspace, from their actual sizes
+    (``jsnap._build.linalg``, ``jsnap._build.reduce``)."""
     dense = method in ("full", "modal", "segmented")
-    # The reduction's largest arrays are dense n x k: the full part's static responses to unit
-    # loads at the contact and interface dofs (k ~ 1000 on the shipped hooks), a few at once.
-    estimate = _DENSE_COPIES * 8 * n_dof**2 if dense else _DENSE_COPIES * 8 * n_dof * _REDUCTION_COLUMNS
-    available = available_memory() if available is None else available
-    if estimate > _MEMORY_SHARE * available:
-        hint = "solver.method = 'reduced' or a larger solver.mesh_size" if dense else "a larger solver.mesh_size"
-        raise BuildError(
-            f"solver.method = {method!r} with {n_dof} dof needs about {estimate / 2**30:.1f} GiB "
-            f"({'dense n x n matrices' if dense else 'the reduction'}), more than the "
-            f"{_MEMORY_SHARE * available / 2**30:.1f} GiB this machine can give it: use {hint}"
-        )
-    return estimate
+    if dense:
+        estimate = _DENSE_COPIES * 8 * n_dof**2
+        hint = "solver.method = 'reduced' or a larger solver.mesh_size"
+    else:
+        estimate = _SPARSE_BYTES_PER_DOF * n_dof + 2 * 8 * n_dof * _RECON_COLUMNS
+        hint = "a larger solver.mesh_size"
+    return require(estimate, f"solver.method = {method!r} with {n_dof} dof", hint, available)
 
 
 @dataclass

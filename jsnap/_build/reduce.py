@@ -69,6 +69,8 @@ import skfem
 
 from jsnap._build.cache import ArtefactError, KeyHash, cached
 from jsnap._build.fem import _ELEMENTS, Assembly, _k_lam, _k_mu, _m1, wrench_rows
+from jsnap._build.linalg import factor, schur_complement
+from jsnap._build.memory import require
 from jsnap._core.params import lame
 from jsnap._core.parts import ReducedPart, SegmentedPart
 
@@ -79,6 +81,8 @@ __all__ = ["GRAMIAN_DAMPING", "Segmentation", "build_part", "cache_key", "load_o
 # well-separated modes the position Hankel singular values are |b_k|^2 / (4 zeta omega_k^2): all
 # scale by 1/zeta alike, so the truncation (relative to the largest) barely depends on it.
 GRAMIAN_DAMPING = 0.05
+# The settings that shrink the reduction's arrays, named when one would not fit in memory.
+_MESH_HINT = "a larger solver.mesh_size"
 
 
 # --------------------------------------------------------------------------------------------
@@ -348,13 +352,6 @@ def _kron3(A: np.ndarray) -> np.ndarray:
     return np.kron(A, np.eye(3))
 
 
-def _node_loads(n_dof: int, rows: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """(n_dof, 3q) nodal loads ``kron(F, I_3)`` on the nodes with local dofs ``3 row + comp``."""
-    out = np.zeros((n_dof, 3 * F.shape[1]))
-    out[_dofs(rows)] = _kron3(F)
-    return out
-
-
 def _load_factor(Jn: np.ndarray) -> np.ndarray:
     """Factor F (c, q) with ``F F' = Jn'Jn``: white-noise forces at the candidate points load the
     nodes with covariance ``kron(Jn'Jn, I_3)`` (sampled surface tractions). Null directions
@@ -364,12 +361,23 @@ def _load_factor(Jn: np.ndarray) -> np.ndarray:
     return Q[:, keep] * np.sqrt(lam[keep])
 
 
-def _factor(K):
-    """Sparse LU of a symmetric positive definite matrix, with a symmetric fill-reducing ordering
-    and no pivoting (several times less fill and faster solves than the default for FEM)."""
-    return spla.splu(
-        sp.csc_matrix(K), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True)
-    )
+def _factor(K, what: str = "a segment's interior"):
+    """Sparse factorisation of a symmetric positive definite node-major matrix (a fill-reducing
+    ordering of its nodes, diagonal pivots: :func:`jsnap._build.linalg.factor`), its memory
+    checked before it is made."""
+    return factor(K, what, _MESH_HINT)
+
+
+def _unit_responses(lu, n: int, at: np.ndarray, chunk: int = 256) -> np.ndarray:
+    """(n, len(at)) responses ``K^-1 e_j`` to a unit load at each dof ``at`` (``lu`` K's factor),
+    solved a chunk of loads at a time: no dense (n, len(at)) load matrix besides the result."""
+    X = np.empty((n, at.size))
+    for j in range(0, at.size, chunk):
+        cols = np.arange(min(chunk, at.size - j))
+        E = np.zeros((n, cols.size))
+        E[at[j + cols], cols] = 1.0
+        X[:, j + cols] = lu.solve(E)
+    return X
 
 
 def _lowest_modes(K, M, lu, k: int):
@@ -389,7 +397,9 @@ def _lowest_modes(K, M, lu, k: int):
     return vec
 
 
-def _greedy_energy(X: np.ndarray, S: np.ndarray, Q0: np.ndarray, ref: np.ndarray, tol: float) -> np.ndarray:
+def _greedy_energy(
+    X: np.ndarray, S: np.ndarray, Q0: np.ndarray, ref: np.ndarray, tol: float, SX: np.ndarray | None = None
+) -> np.ndarray:
     """Greedy energy-norm span: vectors to add to Q0 so that every column x_j of X is represented
     to ``|x_j - P x_j|_S^2 <= tol ref_j`` (P the S-orthogonal projection onto the span).
 
@@ -400,6 +410,7 @@ def _greedy_energy(X: np.ndarray, S: np.ndarray, Q0: np.ndarray, ref: np.ndarray
     Args:
         X: (m, n) candidate vectors.   S: (m, m) symmetric positive definite.
         Q0: (m, k) vectors already in the basis.   ref: (n,) > 0 reference per column.
+        SX: ``S @ X`` when the caller has it for less than the product costs, or None.
 
     Returns:
         (m, a) the added vectors, S-orthonormal and S-orthogonal to Q0.
@@ -409,7 +420,7 @@ def _greedy_energy(X: np.ndarray, S: np.ndarray, Q0: np.ndarray, ref: np.ndarray
         Q = Q0 @ np.linalg.inv(np.linalg.cholesky(0.5 * (G + G.T))).T  # S-orthonormal
     else:
         Q = Q0
-    SX = S @ X
+    SX = S @ X if SX is None else SX
     A = Q.T @ SX
     lost = np.einsum("mn,mn->n", X, SX) - np.einsum("kn,kn->n", A, A)
     added = []
@@ -444,7 +455,7 @@ def _normal_loads(Jn: np.ndarray, normals: np.ndarray) -> np.ndarray:
     return L[:, distinct.ravel()]
 
 
-def interface_shapes(asm: Assembly, seg: Segmentation, K_free, cnodes, cases, tol: float):
+def interface_shapes(asm: Assembly, seg: Segmentation, blocks, lame0, cnodes, cases, tol: float, say=None):
     """Shapes of the interface nodes, shared by every segment's copy of them, and the full
     model's static compliance of each contact load case.
 
@@ -455,35 +466,62 @@ def interface_shapes(asm: Assembly, seg: Segmentation, K_free, cnodes, cases, to
     ``S_G = (E_G' K^-1 E_G)^-1``, P the S_G-orthogonal projection (the Craig-Bampton model with
     exact interiors is exact but for it).
 
+    The full model is never factored: each segment is condensed onto its interface nodes (the
+    contact segment onto its contact nodes as well) by one sparse factorisation with those nodes
+    ordered last (:func:`jsnap._build.linalg.schur_complement`), and the condensed stiffnesses
+    add up to the full model's on the contact and interface dofs, ``S_W`` (dense, of their
+    size), from which the contact compliance, the traces and ``S_G`` follow by dense algebra.
+
     Args:
-        K_free: (n, n) sparse stiffness of the full model at the free dofs, N/mm.
-        cnodes: (c,) global ids of the contact nodes.
+        blocks: per segment, its (K_lam, K_mu, M1) on its local dofs (:func:`segment_blocks`).
+        lame0: nominal (lambda, mu), MPa.
+        cnodes: (c,) global ids of the contact nodes (all in the contact segment's interior).
         cases: (3c, Q) contact load cases on their dofs (:func:`_normal_loads`), N.
+        say: progress printer, or None.
 
     Returns:
         ``(gamma, Psi, compliance)``: interface node ids (k,), an orthonormal (3k, q) basis of
         shapes, and the full model's static compliance (Q,) of each case, mm/N.
     """
+    say = say or (lambda *a, **k: None)
     gamma = np.unique(np.concatenate([seg.nodes[i][seg.interface_nodes(i)] for i in range(seg.n_segments)]))
-    free_pos = -np.ones(3 * asm.nodes.shape[0], dtype=np.int64)
-    free_pos[asm.free] = np.arange(asm.free.size)
-    rows = free_pos[_dofs(gamma)]
-    n = asm.free.size
-    lu = _factor(K_free)
-    # Unit forces on the contact and interface dofs (fewer than the load cases).
-    c3 = 3 * cnodes.size
-    unit = np.concatenate(
-        [_node_loads(n, free_pos[3 * cnodes] // 3, np.eye(cnodes.size)), np.eye(n)[:, rows]], 1
-    )
-    X = np.concatenate([lu.solve(unit[:, j : j + 64]) for j in range(0, unit.shape[1], 64)], axis=1)
-    contact_rows = free_pos[_dofs(cnodes)]
-    C = X[contact_rows, :c3]  # static compliance of the contact dofs
-    compliance = np.einsum("aq,ab,bq->q", cases, 0.5 * (C + C.T), cases)
-    traces = X[rows, :c3] @ cases
-    F = X[rows, c3:]  # interface flexibility
-    S_G = np.linalg.inv(0.5 * (F + F.T))
+    c3, g3 = 3 * cnodes.size, 3 * gamma.size
+    m = c3 + g3
+    # S_W, its contact and interface blocks and the factors of the dense algebra below; the
+    # load cases, the traces and their S_G products (m x Q each, at most).
+    need = 8 * m * (5 * m + 4 * cases.shape[1])
+    require(need, f"the condensed stiffness of the contact and interface dofs ({m} dof)", _MESH_HINT)
+    lam0, mu0 = lame0
+    S_W = np.zeros((m, m))
+    for i in range(seg.n_segments):
+        t0 = time.perf_counter()
+        K = (lam0 * blocks[i][0] + mu0 * blocks[i][1]).tocsr()
+        local_g = seg.interface_nodes(i)
+        at = c3 + _dofs(np.searchsorted(gamma, seg.nodes[i][local_g]))
+        keep = local_g
+        if i == 0:
+            local_c = np.searchsorted(seg.nodes[0], cnodes)
+            if not np.array_equal(seg.nodes[0][local_c], cnodes):
+                raise RuntimeError("segment: a contact node lies outside the contact segment")
+            keep = np.concatenate([local_c, local_g])
+            at = np.concatenate([np.arange(c3), at])
+        S_W[np.ix_(at, at)] += schur_complement(K, keep, f"segment {i}", _MESH_HINT)
+        dt = time.perf_counter() - t0
+        say(f"jsnap:   segment {i} ({K.shape[0]} dof) condensed onto {at.size} dof in {dt:.1f} s")
+    # The full model on W = (contact, interface): [S_cc S_cG; S_Gc S_GG] [u_c; u_G] = [I; 0].
+    S_cc, S_cG, S_GG = S_W[:c3, :c3], S_W[:c3, c3:], S_W[c3:, c3:]
+    del S_W
+    cho_c = sla.cho_factor(S_cc)
+    Y = sla.cho_solve(cho_c, S_cG)  # S_cc^-1 S_cG
+    S_G = S_GG - S_cG.T @ Y  # the full model condensed onto the interface
+    S_G = 0.5 * (S_G + S_G.T)
+    traces_unit = -sla.cho_solve(sla.cho_factor(S_G), Y.T)  # u_G for unit loads at the contact dofs
+    C = sla.cho_solve(cho_c, np.eye(c3)) - Y @ traces_unit  # static compliance of the contact dofs
+    compliance = np.sum(cases * (0.5 * (C + C.T) @ cases), axis=0)
+    traces = traces_unit @ cases
     rigid, _ = np.linalg.qr(_rigid_shapes(asm.nodes[gamma]))
-    extra = _greedy_energy(traces, 0.5 * (S_G + S_G.T), rigid, compliance, tol)
+    # S_G traces = -S_cG' S_cc^-1 cases: the greedy's S X without a (3k)^2 x Q product.
+    extra = _greedy_energy(traces, S_G, rigid, compliance, tol, SX=-Y.T @ cases)
     psi, _ = np.linalg.qr(np.concatenate([rigid, extra], axis=1))
     return gamma, psi, compliance
 
@@ -549,15 +587,24 @@ def segment_basis(
     C_I = -lu.solve(np.asarray(K_IG @ psi)) if psi.shape[1] else np.zeros((inner.size, 0))
     if contact is not None:
         rows, factor, cases, compliance = contact
-        if np.any(inner_pos[_dofs(rows)] < 0):
+        at = inner_pos[_dofs(rows)]  # the contact dofs among the interior's
+        if np.any(at < 0):
             raise RuntimeError("segment: a contact node lies on the segment interface (raise the margin)")
-        unit = _node_loads(n, rows, np.eye(rows.size))[inner]  # a unit force on each contact dof
-        B = unit @ _kron3(factor)
-        span = unit
+        B = np.zeros((inner.size, 3 * factor.shape[1]))
+        B[at] = _kron3(factor)  # the contact forces' covariance factor on the contact dofs
+        span = at.size
     else:  # the interface shapes' accelerations load the interior through the mass
         B = np.asarray(M_II @ C_I + M_IG @ psi)
-        span = B
-    X = lu.solve(span) if span.shape[1] else np.zeros((inner.size, 0))
+        span = B.shape[1]
+    # The subspace (n x s) and the few copies of it that orthonormalising and projecting make;
+    # the balancing's (s, s, 2, 2) complex Gramian terms (position_gramians), a few at once.
+    s_max = min(n_modes, inner.size) + span
+    need = 5 * 8 * inner.size * s_max + 4 * 64 * s_max**2
+    require(need, f"the balancing subspace ({inner.size} x {s_max})", _MESH_HINT)
+    if contact is not None:
+        X = _unit_responses(lu, inner.size, at)  # K_II^-1 of a unit force on each contact dof
+    else:
+        X = lu.solve(B) if B.shape[1] else np.zeros((inner.size, 0))
     U = _m_orthonormal(np.concatenate([_lowest_modes(K_II, M_II, lu, n_modes), X], axis=1), M_II)
     Kh = U.T @ (K_II @ U)
     Kh = 0.5 * (Kh + Kh.T)
@@ -567,8 +614,8 @@ def segment_basis(
         n_bal = Y.shape[1]
         hsv = hsv / hsv[0]
         if contact is not None:  # static correction: compliance lost below tol x the full model's
-            L = U.T @ (unit @ cases)
-            Z = _greedy_energy(np.linalg.solve(Kh, L), Kh, Y, compliance, tol)
+            L = U[at].T @ cases
+            Z = _greedy_energy(np.linalg.solve(Kh, L), Kh, Y, compliance, tol, SX=L)
             Y = np.concatenate([Y, Z], axis=1)
             n_static = Z.shape[1]
     else:
@@ -689,7 +736,7 @@ def _to_part(arrays: dict, orders, method: str, kc: float, bc: float) -> Segment
 
 
 def reduce_bases(
-    asm, seg, blocks, material: tuple[float, float, float], sample, normals, tol: float, n_modes: int
+    asm, seg, blocks, material: tuple[float, float, float], sample, normals, tol: float, n_modes: int, say=None
 ):
     """Per-segment balanced bases (see the module docstring).
 
@@ -699,20 +746,23 @@ def reduce_bases(
         normals: (P, m, 3) outward normals of the section side(s) each point lies on.
         tol: ``solver.hsv_tolerance``.
         n_modes: lowest interior modes per segment in the balancing subspace.
+        say: progress printer (long builds), or None.
 
     Returns:
         ``(bases, info)``: a :class:`SegmentBasis` per segment and a dict of sizes.
     """
+    say = say or (lambda *a, **k: None)
     E, nu, rho = material
     lam0, mu0 = lame(E, nu)
     free = asm.free
     nodes, weights = sample
     cnodes, Jn = _contact_interp((free[0::3] // 3)[nodes], weights)
     cases = _normal_loads(Jn, np.asarray(normals, dtype=np.float64).reshape(Jn.shape[0], -1, 3))
-    K_free = (lam0 * asm.K_lam + mu0 * asm.K_mu)[free][:, free].tocsr()
     # Half the tolerance for the interface, half for the interiors: the static compliance lost by
     # the two adds up.
-    gamma, psi, compliance = interface_shapes(asm, seg, K_free, cnodes, cases, tol / 2)
+    t0 = time.perf_counter()
+    gamma, psi, compliance = interface_shapes(asm, seg, blocks, (lam0, mu0), cnodes, cases, tol / 2, say=say)
+    say(f"jsnap:   {psi.shape[1]} interface shapes on {len(gamma)} nodes in {time.perf_counter() - t0:.1f} s")
     psi = psi.reshape(len(gamma), 3, -1)
     bases = []
     for i in range(seg.n_segments):
@@ -723,7 +773,13 @@ def reduce_bases(
         contact = None
         if i == 0:
             contact = (np.searchsorted(seg.nodes[0], cnodes), _load_factor(Jn), cases, compliance)
+        t0 = time.perf_counter()
         bases.append(segment_basis(blocks[i], lam0, mu0, rho, gl, psi_i, contact, tol, n_modes))
+        b = bases[-1]
+        say(
+            f"jsnap:   segment {i}: {b.V.shape[1]} coordinates (subspace {b.subspace}, "
+            f"{b.n_balanced} balanced, {b.n_static} static) in {time.perf_counter() - t0:.1f} s"
+        )
     info = dict(
         interface_nodes=len(gamma),
         interface_shapes=int(psi.shape[2]),
@@ -802,9 +858,10 @@ def _build(asm: Assembly, seed_faces, sample, stencil, normals, settings, progre
     t0 = time.perf_counter()
     seg = segment(asm, seed_faces, settings["segment_margin"], settings["segments"])
     blocks, reactions = zip(*(segment_blocks(asm, seg, i) for i in range(seg.n_segments)), strict=True)
+    say(f"jsnap: reducing {asm.free.size} dof: segments of {', '.join(str(3 * len(n)) for n in seg.nodes)} dof")
     material = (settings["youngs_modulus"], settings["poissons_ratio"], settings["density"])
     bases, info = reduce_bases(
-        asm, seg, blocks, material, sample, normals, settings["hsv_tolerance"], settings["subspace_modes"]
+        asm, seg, blocks, material, sample, normals, settings["hsv_tolerance"], settings["subspace_modes"], say
     )
     arrays, orders = _part_arrays(asm, seg, blocks, reactions, [b.V for b in bases], sample, stencil)
     seconds = time.perf_counter() - t0

@@ -108,6 +108,29 @@ def section_samples(geom: Cantilever, lo, hi, spacing: float, width_spacing: flo
     return X[keep], N[keep], C[keep], stencil[keep], group, order[keep]
 
 
+# Distance from a face (plane distance plus the barycentric excess scaled by the face's size, mm)
+# below which a point counts as lying on it.
+_ON_FACE = 1e-7
+
+
+def _candidate_pairs(tri: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(point, face) index pairs (k,), (k,) of the points X (P, 3) and the triangles tri (F, 3, 3)
+    that may lie on one another: the point within the largest circumradius about the centroid
+    of the face (any point of a triangle is within that of its centroid), with a margin well
+    above :data:`_ON_FACE`. A k-d tree of the centroids keeps this O(P log F) in time and O(P)
+    in memory, where testing every point against every face took P x F x 3 floats."""
+    from scipy.spatial import cKDTree
+
+    centre = tri.mean(axis=1)
+    reach = np.linalg.norm(tri - centre[:, None], axis=2).max()
+    reach = reach * (1 + 1e-6) + 1e3 * _ON_FACE
+    near = cKDTree(centre).query_ball_point(X, reach)
+    counts = np.fromiter((len(c) for c in near), dtype=np.int64, count=len(X))
+    p = np.repeat(np.arange(len(X)), counts)
+    f = np.fromiter((j for c in near for j in c), dtype=np.int64, count=int(counts.sum()))
+    return p, f
+
+
 def locate_on_faces(asm: Assembly, faces: np.ndarray, X: np.ndarray, normals: np.ndarray):
     """Face of each point (on the boundary) and its interpolating nodes and weights.
 
@@ -123,19 +146,24 @@ def locate_on_faces(asm: Assembly, faces: np.ndarray, X: np.ndarray, normals: np
     e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
     nrm = np.cross(e1, e2)
     area2 = np.linalg.norm(nrm, axis=1)
-    d = X[:, None, :] - tri[None, :, 0]  # (P, F, 3)
-    plane = np.abs(np.einsum("pfd,fd->pf", d, nrm)) / area2
-    l2 = np.einsum("pfd,fd->pf", d, np.cross(nrm, e1)) / area2**2
-    l1 = np.einsum("pfd,fd->pf", d, np.cross(e2, nrm)) / area2**2
+    p, f = _candidate_pairs(tri, X)
+    d = X[p] - tri[f, 0]  # one row per (point, face) pair near each other
+    plane = np.abs(np.einsum("kd,kd->k", d, nrm[f])) / area2[f]
+    l2 = np.einsum("kd,kd->k", d, np.cross(nrm, e1)[f]) / area2[f] ** 2
+    l1 = np.einsum("kd,kd->k", d, np.cross(e2, nrm)[f]) / area2[f] ** 2
     l0 = 1 - l1 - l2
     outside = np.maximum(np.maximum(-l0, -l1), -l2).clip(min=0)
-    score = plane + outside * area2[None, :] ** 0.5
-    if np.any(score.min(axis=1) > 1e-7):
+    score = plane + outside * area2[f] ** 0.5
+    on = score <= _ON_FACE
+    if not np.all(np.bincount(p[on], minlength=len(X)) > 0):
         raise RuntimeError("contact sample not on the socket surface (geometry/mesh mismatch)")
-    align = np.einsum("pd,fd->pf", normals, nrm / area2[:, None])
-    f = np.argmax(np.where(score <= 1e-7, align, -np.inf), axis=1)
-    r = np.arange(len(X))
-    L = np.stack([l0[r, f], l1[r, f], l2[r, f]], axis=1).clip(0, 1)
+    align = np.einsum("kd,kd->k", normals[p], nrm[f] / area2[f, None])
+    # Per point, the face on it whose normal is closest to the point's (lowest face index on a tie).
+    k = np.flatnonzero(on)
+    k = k[np.lexsort((f[k], -align[k], p[k]))]
+    k = k[np.r_[True, p[k][1:] != p[k][:-1]]]  # the first of each point's run, in point order
+    f = f[k]
+    L = np.stack([l0[k], l1[k], l2[k]], axis=1).clip(0, 1)
     L /= L.sum(axis=1, keepdims=True)
     a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
     if asm.element == "P1":
