@@ -87,12 +87,11 @@ def test_interface_shapes_condensed_by_segment_equal_the_full_model(scene, asm):
     """The contact compliance and the interface shapes from the segments' Schur complements are
     the full model's, computed here from its dense inverse (the construction the segment-wise one
     replaces: unit loads at every contact and interface dof)."""
-    from jsnap._build.model import _contact_candidates
+    from jsnap._build.model import _contact_candidates, _geometry
 
-    geom = connector_geometry(scene)
-    plug = default_plug(scene["plug"], geom)
-    mesh = asm.mesh
-    _, sample, _, seeds, normals = _contact_candidates(scene, geom, mesh, asm, plug, motion_stroke(scene, geom))
+    g = _geometry(scene)
+    g.mesh = asm.mesh  # the assembly's own mesh (the same cantilever)
+    _, sample, _, seeds, normals = _contact_candidates(scene, g, asm)
     seg = R.segment(asm, seeds, 1.0, 1)
     blocks = [R.segment_blocks(asm, seg, i)[0] for i in range(seg.n_segments)]
     free = asm.free
