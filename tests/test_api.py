@@ -317,7 +317,7 @@ def test_energy_creation_is_flagged(model):
         prepared = prepare(model)
         controls = jnp.asarray(model.trajectory()[1:], jnp.float64)
         out, xs, start = _run(model, prepared, controls, jnp.asarray(model.plug_start), False)
-        clean = _result(out, xs, start, prepared.valid, model.dt)
+        clean = _result(out, xs, start, prepared.valid, model.dt, model.axis)
         assert not np.any(np.asarray(clean.flags) & status.ENERGY_CREATED)
         excess = np.asarray(out.energy - jnp.cumsum(out.work))
         assert excess.max() <= 1e-6 * np.abs(np.asarray(out.energy)).max()
@@ -325,7 +325,7 @@ def test_energy_creation_is_flagged(model):
         # The work so far, less what friction dissipated, less a tenth of the energy held.
         deficit = jnp.cumsum(out.work)[k] - 0.9 * out.energy[k]
         forged = eqx.tree_at(lambda o: o.work, out, out.work.at[k].add(-deficit))
-        flagged = _result(forged, xs, start, prepared.valid, model.dt)
+        flagged = _result(forged, xs, start, prepared.valid, model.dt, model.axis)
     flags = np.asarray(flagged.flags)
     assert not np.any(flags[:k] & status.ENERGY_CREATED) and flags[k] & status.ENERGY_CREATED
     assert f"step {k + 1}: the deformable part gained more energy" in flagged.status()
