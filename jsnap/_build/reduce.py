@@ -13,7 +13,7 @@ The joined system is again a linear PMI system, block-diagonal but for the coupl
 with ``Dg`` the difference operator of the joined copies. It is passive for any ``k_c, b_c >= 0``
 and tends to the full model as ``k_c`` grows. The coupling is eliminated analytically once per
 parameter set: with dense operators it is part of ``S^-1`` (a Schur complement in all but
-name, see :meth:`jsnap._core.parts.SegmentedPart.prepare`).
+name, see :meth:`jsnap._core.parts.ReducedPart.prepare`).
 
 **Balanced reduction** (``solver.method = "reduced"``). Each segment's displacement is
 ``x_i = V_i z_i`` (a one-sided congruence), so ``M_r = V'MV``, ``K_r = V'KV``, ``D_r = V'DV``
@@ -40,21 +40,11 @@ every candidate point (both sides' normals at an edge); ``tol = solver.hsv_toler
   truncation lost are put back, greedily, until every case keeps its static compliance to
   ``tol/2`` of the full model's. Quasi-static insertion forces are set by that compliance.
 
-Together: the normal compliance at every candidate point is within ``tol`` of the full model's,
-which tests/test_reduce.py checks.
-
-**Joined, in modal coordinates** (:func:`join_segments`). Because every segment's interface
-trace spans the same shapes, the stacked coordinates whose copies coincide form a subspace:
-the reduced model is the congruence of the full one on it (the stiff limit of the interface
-springs, reached exactly; no ``k_c`` enters), turned into its modal coordinates at the build's
-material. Springs would put eigenvalues of ``k_c T`` times the squared interface traces into
-``S`` (~1e15 against ~1e4 at the soft end on a 13 000-dof hook): ``S^-1`` then has a condition
-number far beyond float32's 1/eps, and a float32 rollout in the segments' mass-orthonormal
-coordinates gains energy step by step, contact or not, until it overflows. In modal
-coordinates ``S`` is diagonal (see :class:`jsnap._core.parts.ReducedPart`).
+Together: the normal compliance at every candidate point is within ``tol`` of the full model's
+(plus the interface springs' ``1/k_c``), which tests/test_reduce.py checks.
 
 ``V`` is computed once at the scene's material and held fixed: the stored blocks are
-parameter-free (``V'K_lam V``, ``V'K_mu V``, ``V'M1 V``, base-reaction rows), so E, nu,
+parameter-free (``V'K_lam V``, ``V'K_mu V``, ``V'M1 V``, ``Dg V``, base-reaction rows), so E, nu,
 rho, alpha, beta stay exact and differentiable without rebuilding the basis. Reduced models are
 cached on disk under a hash of everything they depend on (:func:`load_or_build`). The full
 displacement is reconstructed only when asked (``free_displacement``); the base wrench is a
@@ -641,15 +631,10 @@ def segment_basis(
 # Building the part (host)
 # --------------------------------------------------------------------------------------------
 
-# Arrays of a built segmented part (the fields of jsnap._core.parts.SegmentedPart) and of a
-# reduced one (jsnap._core.parts.ReducedPart: the segments joined, so no coupling rows).
-_SEGMENTED_ARRAYS = (
+# Arrays of a built segmented/reduced part (the fields of jsnap._core.parts.ReducedPart).
+_ARRAYS = (
     "kl", "km", "m1", "coupling_rows", "out_kl", "out_km", "out_m1", "node_rows",
-    "sample_nodes", "sample_weights", "stencil_nodes", "stencil_weights", "recon_index",
-)  # fmt: skip
-_REDUCED_ARRAYS = (
-    "kl", "km", "m1", "out_kl", "out_km", "out_m1", "node_rows",
-    "sample_nodes", "sample_weights", "stencil_nodes", "stencil_weights", "recon",
+    "sample_nodes", "sample_weights", "stencil_nodes", "stencil_weights", "recon", "recon_index",
 )  # fmt: skip
 
 
@@ -739,76 +724,12 @@ def _part_arrays(asm, seg, blocks, reactions, bases, sample, stencil) -> tuple[d
     return out, orders
 
 
-# Singular values of the joined copies' gap operator below this fraction of the largest are
-# zero: the segments' interface traces span the same shapes, so the gap vanishes exactly on a
-# subspace (its singular values there are round-off, ~1e-15 of the largest).
-_JOIN_RTOL = 1e-8
-
-
-def join_segments(arrays: dict, material: tuple[float, float, float]) -> tuple[dict, dict]:
-    """Join the segments' bases exactly and turn the joined basis into modal coordinates.
-
-    Every segment's basis has the same interface shapes on its copy of the interface
-    (:func:`interface_shapes`), so the coordinates whose copies coincide, ``Dg V z = 0``, form
-    a subspace of the stacked ones: its basis ``N`` (the null space of ``Dg V``) joins the
-    segments as the stiff limit of the interface springs does (the Craig-Bampton model),
-    without a spring. In it the generalised eigenvectors ``Phi`` of ``(N'K N, N'M N)`` at the
-    build's material (``Phi' N'M N Phi = I``) give coordinates ``T = N Phi`` in which ``M`` is
-    the identity and ``K`` diagonal: the PMI matrix ``S = 2M/T + D + (T/2) K`` is diagonal for
-    every Young's modulus, density, Rayleigh damping and time step (the Poisson ratio alone
-    couples the coordinates), and its inverse, applied in float32, keeps every mode to its own
-    relative precision however far apart the frequencies are.
-
-    Args:
-        arrays: the stacked segments' arrays (:func:`_part_arrays`, with ``coupling_rows``).
-        material: (E MPa, nu, rho t/mm^3) of the modal coordinates.
-
-    Returns:
-        ``(arrays, info)``: the reduced part's arrays (:data:`_REDUCED_ARRAYS`) and a dict with
-        the number of interface constraints, the gap left (largest singular value of
-        ``Dg V N`` over that of ``Dg V``) and the modal frequencies' range (rad/s).
-    """
-    E, nu, rho = material
-    lam0, mu0 = lame(E, nu)
-    Dg = arrays["coupling_rows"]
-    r = Dg.shape[1]
-    if Dg.shape[0]:
-        _, sv, Vt = np.linalg.svd(Dg, full_matrices=True)
-        rank = int(np.sum(sv > _JOIN_RTOL * sv[0]))
-        N = Vt[rank:].T
-        gap = float(np.linalg.norm(Dg @ N, 2) / sv[0]) if N.shape[1] else 0.0
-    else:
-        rank, N, gap = 0, np.eye(r), 0.0
-    K = N.T @ ((lam0 * arrays["kl"] + mu0 * arrays["km"]) @ N)
-    M = N.T @ ((rho * arrays["m1"]) @ N)
-    w2, Phi = sla.eigh(0.5 * (K + K.T), 0.5 * (M + M.T))
-    if w2[0] <= 0:
-        raise RuntimeError("join_segments: the joined reduced stiffness is not positive definite")
-    T = N @ Phi
-
-    def congruence(A):
-        B = T.T @ (A @ T)
-        return 0.5 * (B + B.T)
-
-    out = {k: arrays[k] for k in ("sample_nodes", "sample_weights", "stencil_nodes", "stencil_weights")}
-    out.update({k: congruence(arrays[k]) for k in ("kl", "km", "m1")})
-    out.update({k: arrays[k] @ T for k in ("out_kl", "out_km", "out_m1", "recon")})
-    out["node_rows"] = np.einsum("cdr,rs->cds", arrays["node_rows"], T)
-    info = dict(
-        dof=int(T.shape[1]),
-        interface_constraints=rank,
-        interface_gap=gap,
-        frequencies=[float(np.sqrt(w2[0])), float(np.sqrt(w2[-1]))],
-    )
-    return out, info
-
-
 def _to_part(arrays: dict, orders, method: str, kc: float, bc: float) -> SegmentedPart | ReducedPart:
+    fields = [k for k in _ARRAYS if k != ("recon_index" if method == "reduced" else "recon")]
+    cls = ReducedPart if method == "reduced" else SegmentedPart
     with jax.enable_x64(True):
-        if method == "reduced":
-            return ReducedPart(**{k: jnp.asarray(arrays[k]) for k in _REDUCED_ARRAYS}, orders=tuple(orders))
-        return SegmentedPart(
-            **{k: jnp.asarray(arrays[k]) for k in _SEGMENTED_ARRAYS},
+        return cls(
+            **{k: jnp.asarray(arrays[k]) for k in fields},
             coupling=jnp.asarray([kc, bc], jnp.float64),
             orders=tuple(orders),
         )
@@ -877,24 +798,20 @@ def cache_key(asm: Assembly, seed_faces, sample, stencil, normals, settings: dic
     """SHA-256 of everything a reduced model depends on: mesh and element, fixed dofs, seed
     faces, the contact points' and stencils' nodes and weights, the points' normals and the
     settings (material it was balanced at, tolerance, subspace modes, margin, segments)."""
-    coordinates = "segments joined exactly, modal"
-    h = KeyHash("reduced").settings(
-        dict(settings, element=asm.element, gramian_damping=GRAMIAN_DAMPING, coordinates=coordinates)
-    )
+    h = KeyHash("reduced").settings(dict(settings, element=asm.element, gramian_damping=GRAMIAN_DAMPING))
     h.arrays(asm.mesh.points, asm.mesh.cells, asm.fixed, np.sort(np.sort(seed_faces, axis=1), axis=0))
     return h.arrays(*sample, *stencil, np.asarray(normals, dtype=np.float64)).hexdigest()
 
 
 def _check_arrays(arrays: dict, meta: dict) -> None:
-    """A cached file's arrays must be those of a reduced model of its stored order."""
+    """A cached file's arrays must be those of a reduced model of its stored orders."""
     try:
-        r = int(meta["dof"])
-        [int(o) for o in meta["orders"]]
+        r = sum(int(o) for o in meta["orders"])
     except (KeyError, ValueError, TypeError) as err:
         raise ArtefactError(f"corrupt metadata ({type(err).__name__}: {err})") from None
-    missing = [k for k in _REDUCED_ARRAYS if k not in arrays]
-    square = ("kl", "km", "m1", "node_rows", "recon")
-    if missing or any(arrays[k].shape[-1] != r for k in square):
+    missing = [k for k in _ARRAYS if k not in arrays and k != "recon_index"]
+    square = ("kl", "km", "m1", "coupling_rows", "node_rows", "recon")
+    if missing or any(arrays[k].shape[-1] != r for k in square if k in arrays):
         raise ArtefactError(f"arrays missing or not of order {r} ({', '.join(missing) or 'shapes'})")
 
 
@@ -946,12 +863,10 @@ def _build(asm: Assembly, seed_faces, sample, stencil, normals, settings, progre
     bases, info = reduce_bases(
         asm, seg, blocks, material, sample, normals, settings["hsv_tolerance"], settings["subspace_modes"], say
     )
-    stacked, orders = _part_arrays(asm, seg, blocks, reactions, [b.V for b in bases], sample, stencil)
-    arrays, joined = join_segments(stacked, material)
+    arrays, orders = _part_arrays(asm, seg, blocks, reactions, [b.V for b in bases], sample, stencil)
     seconds = time.perf_counter() - t0
     meta = dict(
         orders=list(orders),
-        **joined,
         seconds=seconds,
         settings=settings,
         full_dof=int(asm.free.size),
@@ -971,11 +886,8 @@ def _build(asm: Assembly, seed_faces, sample, stencil, normals, settings, progre
         ],
         **info,
     )
-    say(
-        f"jsnap: reduced {asm.free.size} dof to {' + '.join(map(str, orders))}, joined: {joined['dof']} "
-        f"coordinates, in {seconds:.1f} s"
-    )
-    return arrays, meta
+    say(f"jsnap: reduced {asm.free.size} dof to {' + '.join(map(str, orders))} in {seconds:.1f} s")
+    return {k: v for k, v in arrays.items() if v is not None}, meta
 
 
 def build_part(asm: Assembly, seed_faces, sample, stencil, normals, scene, *, progress: bool = False):
@@ -990,8 +902,7 @@ def build_part(asm: Assembly, seed_faces, sample, stencil, normals, scene, *, pr
         normals: (P, 2, 3) outward normals of the section side each point lies on and (at an
             edge) of the other side: the contact load cases of the static correction.
         scene: the validated scene (``solver`` keys: method, hsv_tolerance, subspace_modes,
-            segment_margin, segments; for the segmented part interface_stiffness,
-            interface_damping, dt).
+            segment_margin, segments, interface_stiffness, interface_damping, dt).
     """
     s = scene["solver"]
     sample = tuple(np.asarray(a) for a in sample)

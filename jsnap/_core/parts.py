@@ -8,8 +8,7 @@ built, ``solver.method``):
   multiply per mode instead of the dense ``S^-1`` pass; Poisson's ratio fixed at build);
 - :class:`SegmentedPart`: the mesh cut into a contact segment and the rest, shared nodes
   duplicated and joined by stiff PMI springs (the paper's Model 3);
-- :class:`ReducedPart`: each segment on a passive balanced basis, the segments joined exactly
-  at their shared interface shapes, in modal coordinates (the paper's Model 4).
+- :class:`ReducedPart`: each segment on a passive balanced basis (the paper's Model 4).
 
 The step (``jsnap._core.step``) never looks inside a part. For the part's state ``(x, v)``
 (its own coordinates: free nodal dofs, modal or reduced coordinates) it asks:
@@ -48,7 +47,6 @@ __all__ = [
     "ModalPart",
     "ReducedOperator",
     "ReducedPart",
-    "SegmentedOperator",
     "SegmentedPart",
 ]
 
@@ -345,56 +343,18 @@ class ModalPart(_ContactNodeRows):
         return self.recon @ x
 
 
-class _DenseCoordinates(_ContactNodeRows):
-    """What the segmented and reduced parts share: a state ``x`` (r,) in coordinates whose
-    parameter-free blocks are dense (r, r), and a Delassus block offered as thin factors.
-
-    Attributes:
-        kl, km, m1: (r, r) ``V'K_lam V``, ``V'K_mu V``, ``V'M1 V`` of the part's coordinates.
-        out_kl, out_km, out_m1: see :class:`AbstractPart`.
-        node_rows, sample_*, stencil_*: see :class:`_ContactNodeRows`.
-        orders: static, coordinates of each segment's basis (segment 0 is the contact segment).
-    """
-
-    kl: eqx.AbstractVar[jax.Array]
-    km: eqx.AbstractVar[jax.Array]
-    m1: eqx.AbstractVar[jax.Array]
-    orders: eqx.AbstractVar[tuple[int, ...]]
-
-    factored: ClassVar[bool] = True
-
-    @property
-    def n_dof(self) -> int:
-        return self.kl.shape[0]
-
-    def contact_factors(self, op, idx):
-        """``A = J S^-1`` and ``J`` (C, 3, r), interpolated from the contact nodes'
-        precomputed rows (``op.NS``): the Delassus block is ``A J'``. O(C k r) per step."""
-        w, nodes = self.sample_weights[idx], self.sample_nodes[idx]
-        A = jnp.einsum("ck,ckdr->cdr", w, op.NS[nodes])
-        J = jnp.einsum("ck,ckdr->cdr", w, self.node_rows[nodes])
-        return A, J
-
-    def contact_operator(self, op, idx):
-        A, J = self.contact_factors(op, idx)
-        return A, jnp.einsum("cdr,efr->cdef", A, J)
-
-    def contact_velocity(self, op, A, force):
-        return jnp.einsum("cdr,cd->r", A, force)
-
-
-class SegmentedOperator(eqx.Module):
-    """What one step of a segmented part needs for one material and time step.
+class ReducedOperator(eqx.Module):
+    """What one step of a segmented or reduced part needs for one material and time step.
 
     The interface springs stay factored (``k_c Dg'Dg``), so that the residual of the PMI
     equations can be formed without the rounding of a dense stiff matrix.
 
     Attributes:
-        S_inv: (r, r) inverse of ``S = 2 M/T + D + (T/2) K`` (interface springs included: the
-            coupling is eliminated here, once per parameter set).
-        S_el: (r, r) ``S`` without the interface springs.
-        M2T: (r, r) ``(2/T) M``.   K_el: (r, r) ``K`` without the interface springs, N/mm.
-        m: (r, r) ``M``, t.
+        S_inv: (r, r) inverse of ``S_r = 2 M_r/T + D_r + (T/2) K_r`` (interface springs
+            included: the coupling is eliminated here, once per parameter set).
+        S_el: (r, r) ``S_r`` without the interface springs.
+        M2T: (r, r) ``(2/T) M_r``.   K_el: (r, r) ``K_r`` without the interface springs, N/mm.
+        m: (r, r) ``M_r``, t.
         kc: interface spring stiffness, N/mm.   sc: ``b_c + (T/2) k_c``, N s/mm.
         NS: (c, 3, r) ``J_c S_inv`` for the contact nodes: a step's ``J S_inv`` is
             interpolated from it without an (r, r) product.
@@ -412,18 +372,19 @@ class SegmentedOperator(eqx.Module):
     dt: jax.Array
 
 
-class SegmentedPart(_DenseCoordinates):
-    """The paper's Model 3: the mesh cut into segments that keep their nodal dofs, each with
-    its own copy of the nodes it shares with another, the copies joined by PMI spring-dampers
-    ``(k_c, b_c)``. The state stacks every segment's nodal dofs. All blocks are
+class _JoinedSegments(_ContactNodeRows):
+    """Segments joined by PMI spring-dampers (``k_c``, ``b_c``) at their duplicated interface
+    nodes. The state ``x`` (r,) stacks every segment's coordinates. All blocks are
     parameter-free, so every method is exact and differentiable in the material.
 
     Attributes:
-        kl, km, m1: (r, r) block diagonal by segment, on the segments' nodal dofs.
-        coupling_rows: (3p, r) ``Dg``: the gap of each joined pair of copies, per component.
+        kl, km, m1: (r, r) ``V'K_lam V``, ``V'K_mu V``, ``V'M1 V`` (block diagonal by segment;
+            ``V`` the identity for :class:`SegmentedPart`).
+        coupling_rows: (3p, r) ``Dg V``: the gap of each joined pair of copies, per component.
         coupling: (2,) interface spring stiffness k_c (N/mm) and damping b_c (N s/mm).
-        recon_index: (n_free,) coordinate of each free dof of the full mesh (one copy of each).
-        Others: see :class:`_DenseCoordinates`.
+        out_kl, out_km, out_m1: see :class:`AbstractPart`.
+        node_rows, sample_*, stencil_*: see :class:`_ContactNodeRows`.
+        orders: static, coordinates per segment (segment 0 is the contact segment).
     """
 
     kl: jax.Array
@@ -440,11 +401,16 @@ class SegmentedPart(_DenseCoordinates):
     stencil_nodes: jax.Array
     stencil_weights: jax.Array
     orders: tuple[int, ...] = eqx.field(static=True)
-    recon_index: jax.Array = eqx.field(kw_only=True)
 
-    def prepare(self, material: Material, dt) -> SegmentedOperator:
+    factored: ClassVar[bool] = True
+
+    @property
+    def n_dof(self) -> int:
+        return self.kl.shape[0]
+
+    def prepare(self, material: Material, dt) -> ReducedOperator:
         """One dense inverse of (r, r), differentiable with respect to every field of
-        ``material``; the interface coupling is folded into ``S``."""
+        ``material``; the interface coupling is folded into ``S_r``."""
         dt = jnp.asarray(dt, jnp.float64)
         kc, bc = self.coupling[0], self.coupling[1]
         Dg = self.coupling_rows
@@ -455,10 +421,10 @@ class SegmentedPart(_DenseCoordinates):
         sc = bc + 0.5 * dt * kc
         S_inv = spd_inverse(S_el + sc * (Dg.T @ Dg))
         NS = jnp.einsum("cdr,rs->cds", self.node_rows, S_inv)
-        return SegmentedOperator(S_inv, S_el, (2.0 / dt) * M, K_el, M, kc, sc, NS, dt)
+        return ReducedOperator(S_inv, S_el, (2.0 / dt) * M, K_el, M, kc, sc, NS, dt)
 
-    def free_velocity(self, op: SegmentedOperator, x, v):
-        """``S^-1 ((2/T) M v - K x)`` with one step of iterative refinement whose residual
+    def free_velocity(self, op: ReducedOperator, x, v):
+        """``S_r^-1 ((2/T) M_r v - K_r x)`` with one step of iterative refinement whose residual
         is formed from the factored operators: a computed ``S_inv`` is the exact inverse of a
         nearby ``S + dS``, and that fixed ``dS`` (of the size of the stiff interface springs
         times eps) would act as a spurious damping or anti-damping that drifts the energy
@@ -469,91 +435,51 @@ class SegmentedPart(_DenseCoordinates):
         res = rhs - op.S_el @ vbar - op.sc * (Dg.T @ (Dg @ vbar))
         return vbar + op.S_inv @ res
 
-    def energy(self, op: SegmentedOperator, x, v):
-        """``1/2 v'M v + 1/2 x'K x`` with the interface springs' energy, N mm."""
+    def contact_factors(self, op: ReducedOperator, idx):
+        """``A = J S^-1`` and ``J`` (C, 3, r), interpolated from the contact nodes'
+        precomputed rows: the Delassus block is ``A J'``. O(C k r) per step."""
+        w, nodes = self.sample_weights[idx], self.sample_nodes[idx]
+        A = jnp.einsum("ck,ckdr->cdr", w, op.NS[nodes])
+        J = jnp.einsum("ck,ckdr->cdr", w, self.node_rows[nodes])
+        return A, J
+
+    def contact_operator(self, op: ReducedOperator, idx):
+        A, J = self.contact_factors(op, idx)
+        return A, jnp.einsum("cdr,efr->cdef", A, J)
+
+    def contact_velocity(self, op: ReducedOperator, A, force):
+        return jnp.einsum("cdr,cd->r", A, force)
+
+    def energy(self, op: ReducedOperator, x, v):
+        """``1/2 v'M_r v + 1/2 x'K_r x`` with the interface springs' energy, N mm."""
         gap = self.coupling_rows @ x
         return 0.5 * v @ (op.m @ v) + 0.5 * x @ (op.K_el @ x) + 0.5 * op.kc * gap @ gap
+
+
+class SegmentedPart(_JoinedSegments):
+    """The paper's Model 3: every segment keeps its nodal dofs (no reduction).
+
+    Attributes:
+        recon_index: (n_free,) coordinate of each free dof of the full mesh (one copy of each).
+        Others: see :class:`_JoinedSegments`.
+    """
+
+    recon_index: jax.Array = eqx.field(kw_only=True)
 
     def free_displacement(self, x):
         return x[self.recon_index]
 
 
-class ReducedOperator(eqx.Module):
-    """What one step of a reduced part needs for one material and time step.
-
-    Attributes:
-        S_inv: (r, r) inverse of ``S = 2 M/T + D + (T/2) K``.   S: (r, r) ``S`` itself.
-        M2T: (r, r) ``(2/T) M``.   K: (r, r) stiffness, N/mm.   m: (r, r) mass, t.
-        NS: (c, 3, r) ``J_c S_inv`` for the contact nodes (see :class:`SegmentedOperator`).
-        dt: time step T, s.
-    """
-
-    S_inv: jax.Array
-    S: jax.Array
-    M2T: jax.Array
-    K: jax.Array
-    m: jax.Array
-    NS: jax.Array
-    dt: jax.Array
-
-
-class ReducedPart(_DenseCoordinates):
+class ReducedPart(_JoinedSegments):
     """The paper's Model 4: each segment's displacement ``x_i = V_i z_i`` on a passive
-    balanced basis whose interface traces are shared shapes, the segments joined exactly (the
-    interface traces of the copies equal) and the joined basis turned into the modal
-    coordinates of the reduced model at the material it was built for.
-
-    A one-sided congruence of the full model: ``M``, ``K``, ``D`` stay symmetric positive
-    definite and PMI stays passive for every parameter set. In modal coordinates ``M`` is
-    ``rho / rho0`` times the identity and ``K`` is diagonal at the build's Poisson ratio for
-    every Young's modulus, so that ``S`` is diagonal up to the change of Poisson ratio and
-    float32 steps keep every mode to its own relative precision (see ``docs/reduction.md``).
+    balanced basis (a one-sided congruence, so PMI stays passive for every parameter set).
 
     Attributes:
-        kl, km, m1: (r, r) the blocks in the joined modal coordinates.
         recon: (n_free, r) free-dof displacement of the full mesh per unit coordinate.
-        orders: static, coordinates of each segment's basis before the segments were joined.
-        Others: see :class:`_DenseCoordinates`.
+        Others: see :class:`_JoinedSegments`.
     """
 
-    kl: jax.Array
-    km: jax.Array
-    m1: jax.Array
-    out_kl: jax.Array
-    out_km: jax.Array
-    out_m1: jax.Array
-    node_rows: jax.Array
-    sample_nodes: jax.Array
-    sample_weights: jax.Array
-    stencil_nodes: jax.Array
-    stencil_weights: jax.Array
-    orders: tuple[int, ...] = eqx.field(static=True)
     recon: jax.Array = eqx.field(kw_only=True)
-
-    def prepare(self, material: Material, dt) -> ReducedOperator:
-        """One dense inverse of (r, r), differentiable with respect to every field of
-        ``material``."""
-        dt = jnp.asarray(dt, jnp.float64)
-        lam, mu = lame(material.E, material.nu)
-        K = lam * self.kl + mu * self.km
-        M = material.rho * self.m1
-        S = 2.0 * M / dt + material.alpha * M + material.beta * K + 0.5 * dt * K
-        S = 0.5 * (S + S.T)
-        S_inv = spd_inverse(S)
-        NS = jnp.einsum("cdr,rs->cds", self.node_rows, S_inv)
-        return ReducedOperator(S_inv, S, (2.0 / dt) * M, K, M, NS, dt)
-
-    def free_velocity(self, op: ReducedOperator, x, v):
-        """``S^-1 ((2/T) M v - K x)`` with one step of iterative refinement against ``S``
-        itself: a computed ``S_inv`` is the exact inverse of a nearby ``S + dS``, and that
-        fixed, indefinite ``dS`` would act as a spurious damping or anti-damping."""
-        rhs = op.M2T @ v - op.K @ x
-        vbar = op.S_inv @ rhs
-        return vbar + op.S_inv @ (rhs - op.S @ vbar)
-
-    def energy(self, op: ReducedOperator, x, v):
-        """``1/2 v'M v + 1/2 x'K x``, N mm."""
-        return 0.5 * v @ (op.m @ v) + 0.5 * x @ (op.K @ x)
 
     def free_displacement(self, x):
         return self.recon @ x
