@@ -178,7 +178,7 @@ def test_bad_rollout_arguments_are_errors(default_coarse):
     _, model, _ = default_coarse
     good = np.asarray(model.trajectory()[1:6])
     for controls in (good[0], good[:, :2], good[:0]):
-        with pytest.raises(ValueError, match=r"controls must be \(steps, 3\)"):
+        with pytest.raises(ValueError, match=r"controls must be \(steps, 3 or 7\)"):
             jsnap.rollout(model, controls=controls)
     bad = good.copy()
     bad[3, 1] = np.nan
@@ -198,7 +198,7 @@ def test_bad_rollout_arguments_are_errors(default_coarse):
 def test_motion_that_never_touches_is_an_error():
     # 0.01 mm at 0.25 mm/s: 40 steps (a scene whose motion takes fewer than 20 is refused on load).
     scene = jsnap.load_scene().replace({**COARSE, "motion.stroke": 0.01, "motion.speed": 0.25})
-    with pytest.raises(SceneError, match="never touches"):
+    with pytest.raises(SceneError, match="never comes near"):
         jsnap.build(scene)
 
 
