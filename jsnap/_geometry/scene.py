@@ -175,6 +175,9 @@ _PARSERS = {
 }
 
 
+# The length unit of a part file's coordinates ([part] and [rigid]).
+_UNITS = Key(str, "mm", choices=("mm", "m", "in"), doc="length unit of the file's coordinates")
+
 SCHEMA: dict[str, dict[str, Key]] = {
     "connector": {
         "type": Key(str, choices=("cantilever",), doc="connector family (the canonical cantilever snap hook)"),
@@ -204,7 +207,7 @@ SCHEMA: dict[str, dict[str, Key]] = {
             doc="the deformable part, instead of [connector]: tetrahedra in any meshio format, or a closed "
             "surface (STL/OBJ/PLY) tet-meshed at solver.mesh_size; relative to the scene file",
         ),
-        "units": Key(str, "mm", choices=("mm", "m", "in"), doc="length unit of the file's coordinates"),
+        "units": _UNITS,
         "fixed": Key(
             str, None, doc="fixed region: a named group of the file (point set, cell set, mask, physical group)"
         ),
@@ -222,7 +225,7 @@ SCHEMA: dict[str, dict[str, Key]] = {
             doc="the rigid part, instead of the preset plug: a closed surface (STL/OBJ/PLY), its coordinates "
             "its pose at t = 0 in the frame of the fixed base; relative to the scene file",
         ),
-        "units": Key(str, "mm", choices=("mm", "m", "in"), doc="length unit of the file's coordinates"),
+        "units": _UNITS,
     },
     "material": {
         "youngs_modulus": _pos("MPa", doc="E, Young's modulus"),
