@@ -521,7 +521,12 @@ def test_spd_inverse_against_numpy(n):
 
 @pytest.mark.parametrize("solver", ["apgd", "admm", "spg"])
 def test_vmap_equals_loop_and_no_recompile(solver):
-    problems = [random_problem(s, 8, "under") for s in range(4)]
+    """A batch solves each problem as one solve does. With W regular ("square") the solution is
+    unique and the iterates are the same up to round-off. With W singular ("under", redundant
+    contacts) the solution set is a face: vmap's reductions round differently, and a method
+    whose steps adapt to the iterate (SPG's Barzilai-Borwein steps) may then settle on another
+    point of it; both must still solve the problem, with the same objective."""
+    problems = [random_problem(s, 8, kind) for s, kind in ((0, "square"), (1, "square"), (2, "under"), (3, "under"))]
     W, q, mu, mask = (np.stack(a) for a in zip(*problems, strict=True))
     jitted = {"apgd": (solve_apgd, _apgd_jit), "admm": (solve_admm, _admm_jit), "spg": (solve_spg, _spg_jit)}
     f, one_jit = jitted[solver]
@@ -530,8 +535,14 @@ def test_vmap_equals_loop_and_no_recompile(solver):
     solve_one = SOLVE[solver]
     for i, p in enumerate(problems):
         one = solve_one(*p)
-        np.testing.assert_allclose(np.asarray(batched.gamma[i]), np.asarray(one.gamma), atol=1e-12)
-        assert int(batched.iterations[i]) == int(one.iterations)
+        sol = jax.tree_util.tree_map(lambda a, i=i: a[i], batched)
+        _assert_solves(*p, sol)
+        if i < 2:
+            np.testing.assert_allclose(np.asarray(sol.gamma), np.asarray(one.gamma), atol=1e-9)
+            assert int(sol.iterations) == int(one.iterations)
+        else:
+            fa, fb = objective(p[0], p[1], sol.gamma), objective(p[0], p[1], one.gamma)
+            assert abs(fa - fb) <= 1e-6 * abs(fb)
     n_compiled = one_jit._cache_size()
     solve_one(*problems[1])
     assert one_jit._cache_size() == n_compiled
