@@ -526,7 +526,8 @@ def test_vmap_equals_loop_and_no_recompile(solver):
     contacts) the solution set is a face: vmap's reductions round differently, and a method
     whose steps adapt to the iterate (SPG's Barzilai-Borwein steps) may then settle on another
     point of it; both must still solve the problem, with the same objective."""
-    problems = [random_problem(s, 8, kind) for s, kind in ((0, "square"), (1, "square"), (2, "under"), (3, "under"))]
+    kinds = ((0, "square"), (1, "square"), (2, "under"), (3, "under"))
+    problems = [random_problem(s, 8, kind) for s, kind in kinds]
     W, q, mu, mask = (np.stack(a) for a in zip(*problems, strict=True))
     jitted = {"apgd": (solve_apgd, _apgd_jit), "admm": (solve_admm, _admm_jit), "spg": (solve_spg, _spg_jit)}
     f, one_jit = jitted[solver]
