@@ -92,12 +92,10 @@ def full_normal_compliance(model, scene) -> np.ndarray:
     return np.einsum("np,np->p", loads, lu.solve(loads))
 
 
-def socket_normal_compliance(model, kc=None) -> np.ndarray:
+def socket_normal_compliance(model) -> np.ndarray:
     s = model.part
-    lam, mu = lame(float(model.params.E), float(model.params.nu))
-    kc = float(s.coupling[0]) if kc is None else kc
-    cr = np.asarray(s.coupling_rows)
-    K = lam * np.asarray(s.kl) + mu * np.asarray(s.km) + kc * cr.T @ cr
+    with jax.enable_x64(True):  # the part's blocks are float64
+        K = np.asarray(s.stiffness(model.params.material))
     node_rows = np.asarray(s.node_rows)[np.asarray(s.sample_nodes)]
     rows = np.einsum("pk,pkdr->pdr", np.asarray(s.sample_weights), node_rows)
     rows = np.einsum("pdr,pd->pr", rows, _normals(model))

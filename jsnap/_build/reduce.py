@@ -4,24 +4,28 @@
 contact candidate points and of their normal stencils (``jsnap._build.model``), grown by
 ``solver.segment_margin`` mm, form the *contact segment*; the other elements form
 ``solver.segments`` non-contact segments (cut by graph distance from the contact segment).
-Every segment has its own copy of the nodes it shares with another; the copies are joined by
-PMI spring-dampers ``(k_c, b_c)`` (``solver.interface_stiffness``, ``interface_damping``).
-The joined system is again a linear PMI system, block-diagonal but for the coupling:
+Every segment has its own copy of the nodes it shares with another. In the segmented model
+(the paper's Model 3) the copies are joined by PMI spring-dampers ``(k_c, b_c)``
+(``solver.interface_stiffness``, ``interface_damping``):
 
     M = diag(M_i),   K = diag(K_i) + k_c G,   D = diag(D_i) + b_c G,   G = Dg' Dg,
 
 with ``Dg`` the difference operator of the joined copies. It is passive for any ``k_c, b_c >= 0``
 and tends to the full model as ``k_c`` grows. The coupling is eliminated analytically once per
 parameter set: with dense operators it is part of ``S^-1`` (a Schur complement in all but
-name, see :meth:`jsnap._core.parts.ReducedPart.prepare`).
+name, see :meth:`jsnap._core.parts.SegmentedPart.prepare`).
 
-**Balanced reduction** (``solver.method = "reduced"``). Each segment's displacement is
-``x_i = V_i z_i`` (a one-sided congruence), so ``M_r = V'MV``, ``K_r = V'KV``, ``D_r = V'DV``
-stay symmetric positive (semi)definite and PMI applies unchanged: the reduced model is passive
-by construction, for every parameter set. Two-sided (Petrov-Galerkin) balanced truncation is
-not used: it breaks the symmetry that passivity rests on. ``V_i`` is a Craig-Bampton basis whose
-interior part is balanced. The *contact load cases* are unit forces along the surface normal at
-every candidate point (both sides' normals at an edge); ``tol = solver.hsv_tolerance``.
+**Balanced reduction** (``solver.method = "reduced"``, the paper's Model 4). The part's
+displacement is ``x = V z`` (a one-sided congruence), so ``M_r = V'MV``, ``K_r = V'KV``,
+``D_r = V'DV`` stay symmetric positive (semi)definite and PMI applies unchanged: the reduced
+model is passive by construction, for every parameter set. Two-sided (Petrov-Galerkin) balanced
+truncation is not used: it breaks the symmetry that passivity rests on. ``V`` is a Craig-Bampton
+basis whose interior parts are balanced. The segments share their interface coordinates (the
+amplitudes of the interface shapes below), so the copies of a shared node move together for
+every ``z``: the segments are joined exactly, with no springs (stiff penalty springs make the
+float32 rollout of a fine mesh gain energy and blow up). The *contact load cases* are unit
+forces along the surface normal at every candidate point (both sides' normals at an edge);
+``tol = solver.hsv_tolerance``.
 
 * *Interface shapes*: the six rigid motions of the interface nodes, then the interface traces of
   the full model's static responses to the load cases, added greedily until restricting the
@@ -39,12 +43,16 @@ every candidate point (both sides' normals at an edge); ``tol = solver.hsv_toler
 * *Static correction* (contact segment): the static responses to the load cases that the
   truncation lost are put back, greedily, until every case keeps its static compliance to
   ``tol/2`` of the full model's. Quasi-static insertion forces are set by that compliance.
+* *Joining* (:func:`join_bases`): the interface amplitudes and every segment's interior
+  coordinates, changed to the reduced model's own modes at the nominal material (mass
+  identity, stiffness diagonal), which keeps float32 products free of cancellation between
+  stiff and soft coordinates.
 
-Together: the normal compliance at every candidate point is within ``tol`` of the full model's
-(plus the interface springs' ``1/k_c``), which tests/test_reduce.py checks.
+Together: the normal compliance at every candidate point is within ``tol`` of the full model's,
+which tests/test_reduce.py checks.
 
 ``V`` is computed once at the scene's material and held fixed: the stored blocks are
-parameter-free (``V'K_lam V``, ``V'K_mu V``, ``V'M1 V``, ``Dg V``, base-reaction rows), so E, nu,
+parameter-free (``V'K_lam V``, ``V'K_mu V``, ``V'M1 V``, base-reaction rows), so E, nu,
 rho, alpha, beta stay exact and differentiable without rebuilding the basis. Reduced models are
 cached on disk under a hash of everything they depend on (:func:`load_or_build`). The full
 displacement is reconstructed only when asked (``free_displacement``); the base wrench is a
@@ -81,6 +89,9 @@ __all__ = ["GRAMIAN_DAMPING", "Segmentation", "build_part", "cache_key", "load_o
 # well-separated modes the position Hankel singular values are |b_k|^2 / (4 zeta omega_k^2): all
 # scale by 1/zeta alike, so the truncation (relative to the largest) barely depends on it.
 GRAMIAN_DAMPING = 0.05
+# How the reduced segments are joined; part of the cache key (files made with springs between
+# the segments' copies hold other arrays).
+_JOINT = "shared interface coordinates"
 # The settings that shrink the reduction's arrays, named when one would not fit in memory.
 _MESH_HINT = "a larger solver.mesh_size"
 
@@ -240,20 +251,25 @@ def segment_blocks(asm: Assembly, seg: Segmentation, i: int):
 # --------------------------------------------------------------------------------------------
 
 
+def _orthonormalizer(G: np.ndarray, rtol: float = 1e-10) -> np.ndarray:
+    """T (k, j) with ``T' G T = I`` for a Gram matrix G (k, k) of k vectors, rank-revealing:
+    directions with an eigenvalue below ``rtol`` times the largest are dropped."""
+    lam, Q = np.linalg.eigh(0.5 * (G + G.T))
+    keep = lam > rtol * lam.max()
+    T = Q[:, keep] / np.sqrt(lam[keep])
+    # One more pass (Cholesky-QR style) removes the round-off of the first.
+    G2 = T.T @ G @ T
+    L = np.linalg.cholesky(0.5 * (G2 + G2.T))
+    return sla.solve_triangular(L, T.T, lower=True).T
+
+
 def _m_orthonormal(U: np.ndarray, M, rtol: float = 1e-10) -> np.ndarray:
     """A basis of range(U) (n, k) orthonormal in the M inner product, rank-revealing."""
     if U.shape[1] == 0:
         return U
     scale = np.linalg.norm(U, axis=0)
     U = U[:, scale > 0] / scale[scale > 0]
-    G = U.T @ (M @ U)
-    lam, Q = np.linalg.eigh(0.5 * (G + G.T))
-    keep = lam > rtol * lam.max()
-    W = U @ (Q[:, keep] / np.sqrt(lam[keep]))
-    # One more pass (Cholesky-QR style) removes the round-off of the first.
-    G = W.T @ (M @ W)
-    L = np.linalg.cholesky(0.5 * (G + G.T))
-    return sla.solve_triangular(L, W.T, lower=True).T
+    return U @ _orthonormalizer(U.T @ (M @ U), rtol)
 
 
 def position_gramians(omega: np.ndarray, b: np.ndarray, zeta: float = GRAMIAN_DAMPING):
@@ -531,7 +547,10 @@ class SegmentBasis:
     """The reduced basis of one segment and how it was obtained.
 
     Attributes:
-        V: (n_i, r_i) basis on the segment's local dofs, M-orthonormal at the nominal material.
+        V: (n_i, r_i) basis on the segment's local dofs: ``n_interface`` constraint modes (the
+            interface shapes extended statically into the interior, one per shape, whose
+            coordinates all segments share), then interior vectors (zero on the interface,
+            M-orthonormal at the nominal material).
         n_interface: number of interface shapes (constraint modes) in it.
         n_balanced: interior states kept by the Hankel singular value tolerance.
         n_static: static-correction vectors added for the contact compliance.
@@ -620,21 +639,25 @@ def segment_basis(
             n_static = Z.shape[1]
     else:
         Y, hsv, n_bal = np.zeros((U.shape[1], 0)), np.zeros(0), 0
-    V = np.zeros((n, psi.shape[1] + Y.shape[1]))
-    V[g, : psi.shape[1]] = psi
-    V[inner, : psi.shape[1]] = C_I
-    V[inner, psi.shape[1] :] = U @ Y
-    return SegmentBasis(_m_orthonormal(V, M), psi.shape[1], n_bal, n_static, hsv, U.shape[1])
+    # Constraint modes as they are (their coordinates are the interface shapes' amplitudes,
+    # shared with the other segments), interior vectors mass-orthonormal.
+    V = np.zeros((n, psi.shape[1]))
+    V[g] = psi
+    V[inner] = C_I
+    interior = np.zeros((n, Y.shape[1]))
+    interior[inner] = _m_orthonormal(U @ Y, M_II)
+    return SegmentBasis(np.concatenate([V, interior], axis=1), psi.shape[1], n_bal, n_static, hsv, U.shape[1])
 
 
 # --------------------------------------------------------------------------------------------
 # Building the part (host)
 # --------------------------------------------------------------------------------------------
 
-# Arrays of a built segmented/reduced part (the fields of jsnap._core.parts.ReducedPart).
+# Arrays of a built reduced part (the fields of jsnap._core.parts.ReducedPart); a segmented
+# part has ``coupling_rows`` and ``recon_index`` in place of ``recon``.
 _ARRAYS = (
-    "kl", "km", "m1", "coupling_rows", "out_kl", "out_km", "out_m1", "node_rows",
-    "sample_nodes", "sample_weights", "stencil_nodes", "stencil_weights", "recon", "recon_index",
+    "kl", "km", "m1", "out_kl", "out_km", "out_m1", "node_rows",
+    "sample_nodes", "sample_weights", "stencil_nodes", "stencil_weights", "recon",
 )  # fmt: skip
 
 
@@ -651,45 +674,43 @@ def _contact_maps(asm: Assembly, seg: Segmentation, nodes: np.ndarray, weights: 
     return contact, idx
 
 
-def _part_arrays(asm, seg, blocks, reactions, bases, sample, stencil) -> tuple[dict, tuple[int, ...]]:
-    """The part's arrays (float64 numpy) for per-segment bases (None: identity)."""
+def _dense(A) -> np.ndarray:
+    return A.toarray() if sp.issparse(A) else np.asarray(A)
+
+
+def _part_arrays(asm, seg, blocks, reactions, Vs, sample, stencil, springs: bool) -> dict:
+    """The part's arrays (float64 numpy).
+
+    Args:
+        Vs: per segment, its rows of the part's basis: (n_i, r), the displacement of the
+            segment's local dofs per unit coordinate of the whole part (sparse or dense).
+        springs: also the rows ``Dg`` of the gaps between the copies of shared nodes (segmented
+            parts, whose copies are joined by springs; a reduced part's copies share their
+            coordinates, so its gaps are zero).
+    """
     n_seg = seg.n_segments
-    sizes = [3 * len(seg.nodes[i]) for i in range(n_seg)]
-    identity = bases is None
-    Vs = [sp.identity(n, format="csr") for n in sizes] if identity else list(bases)
-    orders = tuple(int(V.shape[1]) for V in Vs)
-    offs = np.concatenate([[0], np.cumsum(orders)])
-    r = int(offs[-1])
+    r = Vs[0].shape[1]
     out = {}
     for name, b in zip(("kl", "km", "m1"), range(3), strict=True):
-        A = np.zeros((r, r))
-        for i, V in enumerate(Vs):
-            blk = blocks[i][b]
-            A[offs[i] : offs[i + 1], offs[i] : offs[i + 1]] = blk.toarray() if identity else V.T @ (blk @ V)
+        A = sum(_dense(V.T @ (blocks[i][b] @ V)) for i, V in enumerate(Vs))
         out[name] = 0.5 * (A + A.T)
 
-    def rows(i, local_dofs):  # (len, r) rows of the stacked basis for local dofs of segment i
-        R = np.zeros((len(local_dofs), r))
-        R[:, offs[i] : offs[i + 1]] = Vs[i][local_dofs].toarray() if identity else Vs[i][local_dofs]
-        return R
+    def rows(i, local_dofs):  # (len, r) rows of the basis for local dofs of segment i
+        return _dense(Vs[i][local_dofs])
 
-    P = seg.pairs
-    cr = np.zeros((3 * len(P), r))
-    for a in range(3):
-        cr[a::3] = 0.0
-        for sa in range(n_seg):
-            for sb in range(n_seg):
-                sel = np.flatnonzero((P[:, 0] == sa) & (P[:, 2] == sb))
-                if sel.size:
-                    cr[3 * sel + a] = rows(sa, 3 * P[sel, 1] + a) - rows(sb, 3 * P[sel, 3] + a)
-    out["coupling_rows"] = cr
+    if springs:
+        P = seg.pairs
+        cr = np.zeros((3 * len(P), r))
+        for a in range(3):
+            for sa in range(n_seg):
+                for sb in range(n_seg):
+                    sel = np.flatnonzero((P[:, 0] == sa) & (P[:, 2] == sb))
+                    if sel.size:
+                        cr[3 * sel + a] = rows(sa, 3 * P[sel, 1] + a) - rows(sb, 3 * P[sel, 3] + a)
+        out["coupling_rows"] = cr
     S = wrench_rows(asm)
     for name, b in zip(("out_kl", "out_km", "out_m1"), range(3), strict=True):
-        o = np.zeros((6, r))
-        for i, V in enumerate(Vs):
-            R = reactions[i][b]
-            o[:, offs[i] : offs[i + 1]] = S @ (R.toarray() if identity else R @ V)
-        out[name] = o
+        out[name] = sum(S @ _dense(reactions[i][b] @ V) for i, V in enumerate(Vs))
     (s_nodes, s_w), (t_nodes, t_w) = sample, stencil
     contact, _ = _contact_maps(
         asm, seg, np.concatenate([s_nodes.ravel(), t_nodes.ravel()]), np.concatenate([s_w.ravel(), t_w.ravel()])
@@ -712,25 +733,86 @@ def _part_arrays(asm, seg, blocks, reactions, bases, sample, stencil) -> tuple[d
     s_of, l_of = seg_of[fnode], loc_of[fnode]
     if np.any(s_of < 0):
         raise RuntimeError("segment: a free node belongs to no segment")
-    out["recon_index"] = (offs[s_of] + 3 * l_of + comp).astype(np.int32)
-    if identity:
-        out["recon"] = None
+    if springs:  # the identity basis: a coordinate per local dof, segment after segment
+        offs = np.concatenate([[0], np.cumsum([3 * len(n) for n in seg.nodes])])
+        out["recon_index"] = (offs[s_of] + 3 * l_of + comp).astype(np.int32)
     else:
         recon = np.zeros((n_free, r))
         for i in range(n_seg):
             sel = np.flatnonzero(s_of == i)
             recon[sel] = rows(i, 3 * l_of[sel] + comp[sel])
         out["recon"] = recon
-    return out, orders
+    return out
+
+
+def _identity_bases(seg: Segmentation) -> list:
+    """The segmented part's basis rows: every segment's local dofs are coordinates of their own."""
+    sizes = [3 * len(n) for n in seg.nodes]
+    offs = np.concatenate([[0], np.cumsum(sizes)])
+    r = int(offs[-1])
+    return [
+        sp.csr_matrix((np.ones(n), (np.arange(n), offs[i] + np.arange(n))), shape=(n, r))
+        for i, n in enumerate(sizes)
+    ]
+
+
+def join_bases(bases, blocks, material: tuple[float, float, float]) -> tuple[list[np.ndarray], tuple[int, ...]]:
+    """The segments' bases joined into one basis of the whole part, exactly.
+
+    Every segment's constraint modes carry the same interface shapes (:func:`interface_shapes`),
+    so their coordinates are shared: the part's coordinates are ``(q, z_0, z_1, ...)``, the
+    interface shapes' amplitudes then each segment's interior coordinates, and the copies of a
+    shared node move together for every ``z``. The joined basis is then changed to the reduced
+    model's modal coordinates at the nominal material (mass-orthonormal, stiffness diagonal:
+    well scaled for float32 rollouts).
+
+    Args:
+        material: nominal (E MPa, nu, rho t/mm^3).
+
+    Returns:
+        ``(Vs, orders)``: per segment its rows (n_i, r) of the joined basis, and the orders
+        ``(interface shapes, interior coordinates of segment 0, of segment 1, ...)``.
+    """
+    lam0, mu0 = lame(material[0], material[1])
+    rho0 = material[2]
+    q = bases[0].n_interface
+    if any(b.n_interface != q for b in bases):
+        raise RuntimeError("join_bases: the segments do not carry the same interface shapes")
+    interior = [b.V.shape[1] - q for b in bases]
+    offs = q + np.concatenate([[0], np.cumsum(interior)])
+    r = int(offs[-1])
+    Vs = []
+    for i, b in enumerate(bases):
+        V = np.zeros((b.V.shape[0], r))
+        V[:, :q] = b.V[:, :q]
+        V[:, offs[i] : offs[i + 1]] = b.V[:, q:]
+        Vs.append(V)
+    G = sum(V.T @ (rho0 * blocks[i][2] @ V) for i, V in enumerate(Vs))
+    # Scaled to a unit diagonal first: the constraint modes' masses are ~1e-10 of the interior
+    # vectors' (unit), and the rank test is relative.
+    d = np.sqrt(np.diag(G))
+    T = _orthonormalizer(G / np.outer(d, d)) / d[:, None]
+    # Then rotated onto the reduced model's own modes at the nominal material: M_r = I and K_r
+    # diagonal, for every E and density, and nearly so for another Poisson ratio. A dense
+    # float32 product with K_r or S_r^-1 then adds no cancellation between stiff and soft
+    # coordinates (their frequencies span ~4 decades on a fine mesh).
+    K = sum((V @ T).T @ ((lam0 * blocks[i][0] + mu0 * blocks[i][1]) @ (V @ T)) for i, V in enumerate(Vs))
+    _, Phi = np.linalg.eigh(0.5 * (K + K.T))
+    T = T @ Phi
+    kept = T.shape[1]
+    Vs = [V @ T for V in Vs]
+    return Vs, (kept - sum(interior), *interior)
 
 
 def _to_part(arrays: dict, orders, method: str, kc: float, bc: float) -> SegmentedPart | ReducedPart:
-    fields = [k for k in _ARRAYS if k != ("recon_index" if method == "reduced" else "recon")]
-    cls = ReducedPart if method == "reduced" else SegmentedPart
     with jax.enable_x64(True):
-        return cls(
-            **{k: jnp.asarray(arrays[k]) for k in fields},
+        if method == "reduced":
+            return ReducedPart(**{k: jnp.asarray(arrays[k]) for k in _ARRAYS}, orders=tuple(orders))
+        return SegmentedPart(
+            **{k: jnp.asarray(arrays[k]) for k in _ARRAYS if k != "recon"},
+            coupling_rows=jnp.asarray(arrays["coupling_rows"]),
             coupling=jnp.asarray([kc, bc], jnp.float64),
+            recon_index=jnp.asarray(arrays["recon_index"]),
             orders=tuple(orders),
         )
 
@@ -767,9 +849,9 @@ def reduce_bases(
     bases = []
     for i in range(seg.n_segments):
         gl = seg.interface_nodes(i)
+        # The shapes as they are on this segment's interface nodes (where a segment touches
+        # only part of the interface some may vanish there): one coordinate per shape, shared.
         psi_i = psi[np.searchsorted(gamma, seg.nodes[i][gl])].reshape(3 * len(gl), -1)
-        U, sv, _ = np.linalg.svd(psi_i, full_matrices=False)
-        psi_i = U[:, sv > 1e-8 * sv[0]]
         contact = None
         if i == 0:
             contact = (np.searchsorted(seg.nodes[0], cnodes), _load_factor(Jn), cases, compliance)
@@ -798,7 +880,9 @@ def cache_key(asm: Assembly, seed_faces, sample, stencil, normals, settings: dic
     """SHA-256 of everything a reduced model depends on: mesh and element, fixed dofs, seed
     faces, the contact points' and stencils' nodes and weights, the points' normals and the
     settings (material it was balanced at, tolerance, subspace modes, margin, segments)."""
-    h = KeyHash("reduced").settings(dict(settings, element=asm.element, gramian_damping=GRAMIAN_DAMPING))
+    h = KeyHash("reduced").settings(
+        dict(settings, element=asm.element, gramian_damping=GRAMIAN_DAMPING, joint=_JOINT)
+    )
     h.arrays(asm.mesh.points, asm.mesh.cells, asm.fixed, np.sort(np.sort(seed_faces, axis=1), axis=0))
     return h.arrays(*sample, *stencil, np.asarray(normals, dtype=np.float64)).hexdigest()
 
@@ -809,8 +893,8 @@ def _check_arrays(arrays: dict, meta: dict) -> None:
         r = sum(int(o) for o in meta["orders"])
     except (KeyError, ValueError, TypeError) as err:
         raise ArtefactError(f"corrupt metadata ({type(err).__name__}: {err})") from None
-    missing = [k for k in _ARRAYS if k not in arrays and k != "recon_index"]
-    square = ("kl", "km", "m1", "coupling_rows", "node_rows", "recon")
+    missing = [k for k in _ARRAYS if k not in arrays]
+    square = ("kl", "km", "m1", "node_rows", "recon")
     if missing or any(arrays[k].shape[-1] != r for k in square if k in arrays):
         raise ArtefactError(f"arrays missing or not of order {r} ({', '.join(missing) or 'shapes'})")
 
@@ -863,7 +947,8 @@ def _build(asm: Assembly, seed_faces, sample, stencil, normals, settings, progre
     bases, info = reduce_bases(
         asm, seg, blocks, material, sample, normals, settings["hsv_tolerance"], settings["subspace_modes"], say
     )
-    arrays, orders = _part_arrays(asm, seg, blocks, reactions, [b.V for b in bases], sample, stencil)
+    Vs, orders = join_bases(bases, blocks, material)
+    arrays = _part_arrays(asm, seg, blocks, reactions, Vs, sample, stencil, springs=False)
     seconds = time.perf_counter() - t0
     meta = dict(
         orders=list(orders),
@@ -912,8 +997,9 @@ def build_part(asm: Assembly, seed_faces, sample, stencil, normals, scene, *, pr
     if s["method"] == "segmented":
         seg = segment(asm, seed_faces, s["segment_margin"], s["segments"])
         blocks, reactions = zip(*(segment_blocks(asm, seg, i) for i in range(seg.n_segments)), strict=True)
-        arrays, orders = _part_arrays(asm, seg, blocks, reactions, None, sample, stencil)
-        info = dict(orders=list(orders), interface_pairs=len(seg.pairs))
+        arrays = _part_arrays(asm, seg, blocks, reactions, _identity_bases(seg), sample, stencil, springs=True)
+        orders = [3 * len(n) for n in seg.nodes]
+        info = dict(orders=orders, interface_pairs=len(seg.pairs))
     elif s["method"] == "reduced":
         arrays, info = load_or_build(asm, seed_faces, sample, stencil, normals, scene, progress=progress)
         orders = info["orders"]

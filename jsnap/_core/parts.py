@@ -8,7 +8,8 @@ built, ``solver.method``):
   multiply per mode instead of the dense ``S^-1`` pass; Poisson's ratio fixed at build);
 - :class:`SegmentedPart`: the mesh cut into a contact segment and the rest, shared nodes
   duplicated and joined by stiff PMI springs (the paper's Model 3);
-- :class:`ReducedPart`: each segment on a passive balanced basis (the paper's Model 4).
+- :class:`ReducedPart`: each segment on a passive balanced basis, joined exactly through shared
+  interface coordinates (the paper's Model 4).
 
 The step (``jsnap._core.step``) never looks inside a part. For the part's state ``(x, v)``
 (its own coordinates: free nodal dofs, modal or reduced coordinates) it asks:
@@ -346,16 +347,17 @@ class ModalPart(_ContactNodeRows):
 class ReducedOperator(eqx.Module):
     """What one step of a segmented or reduced part needs for one material and time step.
 
-    The interface springs stay factored (``k_c Dg'Dg``), so that the residual of the PMI
-    equations can be formed without the rounding of a dense stiff matrix.
+    The interface springs of a segmented part stay factored (``k_c Dg'Dg``), so that the
+    residual of the PMI equations can be formed without the rounding of a dense stiff matrix.
 
     Attributes:
-        S_inv: (r, r) inverse of ``S_r = 2 M_r/T + D_r + (T/2) K_r`` (interface springs
-            included: the coupling is eliminated here, once per parameter set).
+        S_inv: (r, r) inverse of ``S_r = 2 M_r/T + D_r + (T/2) K_r`` (a segmented part's
+            interface springs included: the coupling is eliminated here, once per parameter set).
         S_el: (r, r) ``S_r`` without the interface springs.
         M2T: (r, r) ``(2/T) M_r``.   K_el: (r, r) ``K_r`` without the interface springs, N/mm.
         m: (r, r) ``M_r``, t.
-        kc: interface spring stiffness, N/mm.   sc: ``b_c + (T/2) k_c``, N s/mm.
+        kc: interface spring stiffness, N/mm (0 for a reduced part: no springs).
+        sc: ``b_c + (T/2) k_c``, N s/mm.
         NS: (c, 3, r) ``J_c S_inv`` for the contact nodes: a step's ``J S_inv`` is
             interpolated from it without an (r, r) product.
         dt: time step T, s.
@@ -372,26 +374,20 @@ class ReducedOperator(eqx.Module):
     dt: jax.Array
 
 
-class _JoinedSegments(_ContactNodeRows):
-    """Segments joined by PMI spring-dampers (``k_c``, ``b_c``) at their duplicated interface
-    nodes. The state ``x`` (r,) stacks every segment's coordinates. All blocks are
-    parameter-free, so every method is exact and differentiable in the material.
+class _SegmentBlocks(_ContactNodeRows):
+    """A part on dense (r, r) parameter-free blocks: the segmented and the reduced part. All
+    blocks are parameter-free, so every method is exact and differentiable in the material.
 
     Attributes:
-        kl, km, m1: (r, r) ``V'K_lam V``, ``V'K_mu V``, ``V'M1 V`` (block diagonal by segment;
-            ``V`` the identity for :class:`SegmentedPart`).
-        coupling_rows: (3p, r) ``Dg V``: the gap of each joined pair of copies, per component.
-        coupling: (2,) interface spring stiffness k_c (N/mm) and damping b_c (N s/mm).
+        kl, km, m1: (r, r) ``V'K_lam V``, ``V'K_mu V``, ``V'M1 V``.
         out_kl, out_km, out_m1: see :class:`AbstractPart`.
         node_rows, sample_*, stencil_*: see :class:`_ContactNodeRows`.
-        orders: static, coordinates per segment (segment 0 is the contact segment).
+        orders: static, a description of the coordinates (see the subclasses); they add up to r.
     """
 
     kl: jax.Array
     km: jax.Array
     m1: jax.Array
-    coupling_rows: jax.Array
-    coupling: jax.Array
     out_kl: jax.Array
     out_km: jax.Array
     out_m1: jax.Array
@@ -404,35 +400,58 @@ class _JoinedSegments(_ContactNodeRows):
 
     factored: ClassVar[bool] = True
 
+    def _springs(self):
+        """``(Dg (3p, r), k_c, b_c)`` of stiff springs joining copies of shared nodes, or None."""
+        return None
+
     @property
     def n_dof(self) -> int:
         return self.kl.shape[0]
 
+    def stiffness(self, material: Material):
+        """(r, r) stiffness ``K_r`` of the part's coordinates, interface springs included, N/mm."""
+        lam, mu = lame(material.E, material.nu)
+        K = lam * self.kl + mu * self.km
+        springs = self._springs()
+        if springs is not None:
+            Dg, kc, _ = springs
+            K = K + kc * (Dg.T @ Dg)
+        return K
+
     def prepare(self, material: Material, dt) -> ReducedOperator:
         """One dense inverse of (r, r), differentiable with respect to every field of
-        ``material``; the interface coupling is folded into ``S_r``."""
+        ``material``; interface springs, if any, are folded into ``S_r``."""
         dt = jnp.asarray(dt, jnp.float64)
-        kc, bc = self.coupling[0], self.coupling[1]
-        Dg = self.coupling_rows
         lam, mu = lame(material.E, material.nu)
         K_el = lam * self.kl + mu * self.km
         M = material.rho * self.m1
         S_el = 2.0 * M / dt + material.alpha * M + material.beta * K_el + 0.5 * dt * K_el
-        sc = bc + 0.5 * dt * kc
-        S_inv = spd_inverse(S_el + sc * (Dg.T @ Dg))
+        springs = self._springs()
+        if springs is None:
+            kc = sc = jnp.zeros((), jnp.float64)
+            S = S_el
+        else:
+            Dg, kc, bc = springs
+            sc = bc + 0.5 * dt * kc
+            S = S_el + sc * (Dg.T @ Dg)
+        S_inv = spd_inverse(S)
         NS = jnp.einsum("cdr,rs->cds", self.node_rows, S_inv)
         return ReducedOperator(S_inv, S_el, (2.0 / dt) * M, K_el, M, kc, sc, NS, dt)
 
     def free_velocity(self, op: ReducedOperator, x, v):
         """``S_r^-1 ((2/T) M_r v - K_r x)`` with one step of iterative refinement whose residual
-        is formed from the factored operators: a computed ``S_inv`` is the exact inverse of a
-        nearby ``S + dS``, and that fixed ``dS`` (of the size of the stiff interface springs
-        times eps) would act as a spurious damping or anti-damping that drifts the energy
-        linearly in the steps."""
-        Dg = self.coupling_rows
-        rhs = op.M2T @ v - op.K_el @ x - op.kc * (Dg.T @ (Dg @ x))
+        is formed from the blocks (springs factored): a computed ``S_inv`` is the exact inverse
+        of a nearby ``S + dS``, and that fixed ``dS`` would act as a spurious damping or
+        anti-damping that drifts the energy linearly in the steps."""
+        rhs = op.M2T @ v - op.K_el @ x
+        springs = self._springs()
+        if springs is not None:
+            Dg = springs[0]
+            rhs = rhs - op.kc * (Dg.T @ (Dg @ x))
         vbar = op.S_inv @ rhs
-        res = rhs - op.S_el @ vbar - op.sc * (Dg.T @ (Dg @ vbar))
+        res = rhs - op.S_el @ vbar
+        if springs is not None:
+            res = res - op.sc * (Dg.T @ (Dg @ vbar))
         return vbar + op.S_inv @ res
 
     def contact_factors(self, op: ReducedOperator, idx):
@@ -451,32 +470,49 @@ class _JoinedSegments(_ContactNodeRows):
         return jnp.einsum("cdr,cd->r", A, force)
 
     def energy(self, op: ReducedOperator, x, v):
-        """``1/2 v'M_r v + 1/2 x'K_r x`` with the interface springs' energy, N mm."""
-        gap = self.coupling_rows @ x
-        return 0.5 * v @ (op.m @ v) + 0.5 * x @ (op.K_el @ x) + 0.5 * op.kc * gap @ gap
+        """``1/2 v'M_r v + 1/2 x'K_r x`` (with the interface springs' energy), N mm."""
+        e = 0.5 * v @ (op.m @ v) + 0.5 * x @ (op.K_el @ x)
+        springs = self._springs()
+        if springs is not None:
+            gap = springs[0] @ x
+            e = e + 0.5 * op.kc * gap @ gap
+        return e
 
 
-class SegmentedPart(_JoinedSegments):
-    """The paper's Model 3: every segment keeps its nodal dofs (no reduction).
+class SegmentedPart(_SegmentBlocks):
+    """The paper's Model 3: every segment keeps its nodal dofs (no reduction); the copies of
+    the nodes that segments share are joined by stiff PMI spring-dampers ``(k_c, b_c)``.
+    The state ``x`` (r,) stacks every segment's nodal dofs.
 
     Attributes:
+        coupling_rows: (3p, r) ``Dg``: the gap of each joined pair of copies, per component.
+        coupling: (2,) interface spring stiffness k_c (N/mm) and damping b_c (N s/mm).
         recon_index: (n_free,) coordinate of each free dof of the full mesh (one copy of each).
-        Others: see :class:`_JoinedSegments`.
+        orders: dofs per segment (segment 0 is the contact segment).
+        Others: see :class:`_SegmentBlocks`.
     """
 
+    coupling_rows: jax.Array = eqx.field(kw_only=True)
+    coupling: jax.Array = eqx.field(kw_only=True)
     recon_index: jax.Array = eqx.field(kw_only=True)
+
+    def _springs(self):
+        return self.coupling_rows, self.coupling[0], self.coupling[1]
 
     def free_displacement(self, x):
         return x[self.recon_index]
 
 
-class ReducedPart(_JoinedSegments):
-    """The paper's Model 4: each segment's displacement ``x_i = V_i z_i`` on a passive
-    balanced basis (a one-sided congruence, so PMI stays passive for every parameter set).
+class ReducedPart(_SegmentBlocks):
+    """The paper's Model 4: the part's displacement ``x = V z`` on a passive balanced
+    Craig-Bampton basis (a one-sided congruence, so PMI stays passive for every parameter set).
+    The segments share their interface coordinates, so they are joined exactly: no springs.
 
     Attributes:
         recon: (n_free, r) free-dof displacement of the full mesh per unit coordinate.
-        Others: see :class:`_JoinedSegments`.
+        orders: interface shapes, then the interior coordinates of each segment (segment 0 is
+            the contact segment); the coordinates themselves mix them (mass-orthonormal).
+        Others: see :class:`_SegmentBlocks`.
     """
 
     recon: jax.Array = eqx.field(kw_only=True)

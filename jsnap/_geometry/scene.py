@@ -356,8 +356,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
         ),
         "segment_margin": _nonneg("mm", 1.0, "contact segment grown by this", internal=True),
         "segments": Key(int, 1, "", 1, internal=True, doc="number of non-contact segments"),
-        "interface_stiffness": _pos("N/mm", 1e6, "k_c joining the segments' copies", internal=True),
-        "interface_damping": _nonneg("N s/mm", None, "b_c; default k_c dt / 2", internal=True),
+        "interface_stiffness": _pos("N/mm", 1e6, "segmented: k_c joining the segments' copies", internal=True),
+        "interface_damping": _nonneg("N s/mm", None, "segmented: b_c; default k_c dt / 2", internal=True),
     },
 }
 
