@@ -130,6 +130,17 @@ def _own_parts(d):
     return f"STL path against the tet file, peak: {diffs}"
 
 
+def _hook_family(d):
+    h = d["headline"]
+    return (
+        f"default method on {h['hooks']} hooks nobody tuned it for: peak within 3 % of the full float64 "
+        f"model's on {h['within_3_percent']}, within 3 % + the full model's own float32 spread on "
+        f"{h['within_3_percent_plus_spread']}; largest error float32 {100 * h['max_abs_error_float32']:.2f} %, "
+        f"median {100 * h['median_abs_error_float32']:.2f} %; "
+        f"every rollout of it ok: {h['default_method_all_ok']}"
+    )
+
+
 def _sdf_scene(d):
     runs = d["runs"]
     n = runs["neural"]
@@ -357,6 +368,13 @@ BENCHMARKS = [
         _strain,
     ),
     Bench("sdf_accuracy", "neural SDF accuracy and training time (default plug)", False, _sdf_accuracy),
+    Bench(
+        "hook_family",
+        "the default method against the full model on drawn hooks and frictions",
+        False,
+        _hook_family,
+        timed=False,
+    ),
     Bench(
         "own_parts",
         "one part from a tet file and from an STL, under refinement",

@@ -35,7 +35,7 @@ import numpy as np
 
 from jsnap._geometry.mesh import TetMesh, check_quality, signed_volumes
 
-__all__ = ["Cantilever", "mesh_box", "mesh_cantilever"]
+__all__ = ["HOOK_RANGES", "Cantilever", "draw_hooks", "mesh_box", "mesh_cantilever"]
 
 # --------------------------------------------------------------------------------------------
 # Geometry
@@ -398,3 +398,38 @@ def mesh_box(
     )
     points, cells = _extrude([grid], np.linspace(-0.5 * ly, 0.5 * ly, ny + 1))
     return _finish(points, cells, min_quality)
+
+
+# Ranges of a cantilever hook family (mm, degrees) that snap-fit design guides cover; the default
+# hook (L 10, h 1.2, b 4, y_u 0.8, 30°/90°, friction 0.3) lies inside them. The thinnest features
+# are kept >= 0.7 mm so that full reference models of the family stay affordable.
+HOOK_RANGES = {
+    "connector.length": (8.0, 15.0),
+    "connector.thickness": (1.1, 1.8),
+    "taper": (0.65, 1.0),  # tip thickness / root thickness
+    "connector.width": (3.0, 6.0),
+    "connector.undercut": (0.7, 1.2),
+    "connector.lead_angle": (20.0, 45.0),
+    "connector.return_angle": (60.0, 90.0),
+    "contact.friction": (0.0, 0.6),
+}
+
+
+def draw_hooks(seed: int, n: int, ranges: dict = HOOK_RANGES) -> list[dict]:
+    """``n`` scene changes (``Scene.replace`` keys) of hooks drawn over ``ranges``, one draw per
+    stratum of every range (a Latin hypercube), so each range is covered from its low to its
+    high end. ``"taper"`` is the tip-to-root thickness ratio. Each hook is meshed with one P2
+    element across its thinnest feature (undercut or tip), at most 1 mm: the coarsest mesh the
+    scene accepts without a warning."""
+    rng = np.random.default_rng(seed)
+    cases = [{} for _ in range(n)]
+    for key, (lo, hi) in ranges.items():
+        u = (rng.permutation(n) + rng.random(n)) / n
+        for case, x in zip(cases, lo + u * (hi - lo), strict=True):
+            case[key] = round(float(x), 3)
+    for case in cases:
+        taper = case.pop("taper")
+        case["connector.tip_thickness"] = round(taper * case["connector.thickness"], 3)
+        thinnest = min(1.0, case["connector.undercut"], case["connector.tip_thickness"])
+        case["solver.mesh_size"] = float(np.floor(100 * thinnest) / 100)
+    return cases
