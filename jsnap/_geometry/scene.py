@@ -338,8 +338,9 @@ SCHEMA: dict[str, dict[str, Key]] = {
             str,
             None,
             choices=("float32", "float64"),
-            doc="rollout precision; default float64 for the full model (its float32 peak force is 1.8 % "
-            "off) and float32 for the reduced and segmented ones (within 1 %: benchmarks/precision.py)",
+            doc="rollout precision; default float32 for the reduced model (its float32 peak force is "
+            "within 1 % of float64's) and float64 for the full and segmented ones (more than 1 % off: "
+            "benchmarks/precision.py)",
         ),
         "hsv_tolerance": Key(
             float,
