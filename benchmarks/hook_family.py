@@ -27,21 +27,11 @@ import numpy as np
 from _common import code_version
 
 import jsnap
-from jsnap._geometry.cantilever import draw_hooks
+from jsnap._geometry.cantilever import NEARBY_HOOK, draw_hooks
 
 jsnap.configure_xla_cpu()
 
 OUT = Path(__file__).resolve().parent / "results"
-NEARBY = {
-    "connector.length": 12.0,
-    "connector.thickness": 1.4,
-    "connector.tip_thickness": 1.4,
-    "connector.width": 5.0,
-    "connector.undercut": 0.9,
-    "connector.lead_angle": 35.0,
-    "contact.friction": 0.4,
-    "solver.mesh_size": 0.7,
-}
 
 
 def _rollout(model, dtype, **kw):
@@ -88,7 +78,7 @@ def main(argv=None) -> int:
         saved = json.loads((OUT / "hook_family.json").read_text())
         return write(saved["rows"], saved["seed"], saved["machine"], saved["code"])
     rows = []
-    for i, case in enumerate([*draw_hooks(args.seed, args.hooks), NEARBY]):
+    for i, case in enumerate([*draw_hooks(args.seed, args.hooks), NEARBY_HOOK]):
         row = run(case)
         rows.append(row)
         print(

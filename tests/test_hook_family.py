@@ -25,20 +25,10 @@ import numpy as np
 import pytest
 
 import jsnap
-from jsnap._geometry.cantilever import HOOK_RANGES, draw_hooks
+from jsnap._geometry.cantilever import HOOK_RANGES, NEARBY_HOOK, draw_hooks
 
 SEED = 20261127
-NEARBY = {
-    "connector.length": 12.0,
-    "connector.thickness": 1.4,
-    "connector.tip_thickness": 1.4,
-    "connector.width": 5.0,
-    "connector.undercut": 0.9,
-    "connector.lead_angle": 35.0,
-    "contact.friction": 0.4,
-    "solver.mesh_size": 0.7,
-}
-CASES = [*draw_hooks(SEED, 2), NEARBY]
+CASES = [*draw_hooks(SEED, 2), NEARBY_HOOK]
 
 
 def _describe(case: dict) -> str:

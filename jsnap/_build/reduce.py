@@ -796,12 +796,11 @@ def join_bases(bases, blocks, material: tuple[float, float, float]) -> tuple[lis
     # diagonal, for every E and density, and nearly so for another Poisson ratio. A dense
     # float32 product with K_r or S_r^-1 then adds no cancellation between stiff and soft
     # coordinates (their frequencies span ~4 decades on a fine mesh).
-    K = sum((V @ T).T @ ((lam0 * blocks[i][0] + mu0 * blocks[i][1]) @ (V @ T)) for i, V in enumerate(Vs))
-    _, Phi = np.linalg.eigh(0.5 * (K + K.T))
-    T = T @ Phi
-    kept = T.shape[1]
     Vs = [V @ T for V in Vs]
-    return Vs, (kept - sum(interior), *interior)
+    K = sum(V.T @ ((lam0 * blocks[i][0] + mu0 * blocks[i][1]) @ V) for i, V in enumerate(Vs))
+    _, Phi = np.linalg.eigh(0.5 * (K + K.T))
+    Vs = [V @ Phi for V in Vs]
+    return Vs, (T.shape[1] - sum(interior), *interior)
 
 
 def _to_part(arrays: dict, orders, method: str, kc: float, bc: float) -> SegmentedPart | ReducedPart:

@@ -35,7 +35,7 @@ import numpy as np
 
 from jsnap._geometry.mesh import TetMesh, check_quality, signed_volumes
 
-__all__ = ["HOOK_RANGES", "Cantilever", "draw_hooks", "mesh_box", "mesh_cantilever"]
+__all__ = ["HOOK_RANGES", "NEARBY_HOOK", "Cantilever", "draw_hooks", "mesh_box", "mesh_cantilever"]
 
 # --------------------------------------------------------------------------------------------
 # Geometry
@@ -412,6 +412,20 @@ HOOK_RANGES = {
     "connector.lead_angle": (20.0, 45.0),
     "connector.return_angle": (60.0, 90.0),
     "contact.friction": (0.0, 0.6),
+}
+
+
+# A hook slightly different from the default that once broke the float32 reduced model (stiff
+# interface springs rounded): a fixed member of every hook-family check.
+NEARBY_HOOK = {
+    "connector.length": 12.0,
+    "connector.thickness": 1.4,
+    "connector.tip_thickness": 1.4,
+    "connector.width": 5.0,
+    "connector.undercut": 0.9,
+    "connector.lead_angle": 35.0,
+    "contact.friction": 0.4,
+    "solver.mesh_size": 0.7,
 }
 
 
