@@ -49,8 +49,7 @@ from _common import FLOAT32, code_version, jitted_step, load_scene, scan_timing
 
 import jsnap
 from jsnap._build.neural_sdf import NeuralSDFConfig, cache_key, cache_path, shipped_path
-from jsnap._geometry.plug import default_plug
-from jsnap._geometry.scene import connector_geometry
+from jsnap._geometry.presets import default_rigid
 
 # XLA's small-loop option, before the first JAX computation (the committed timings have it).
 jsnap.configure_xla_cpu()
@@ -76,7 +75,7 @@ def machine(load) -> str:
 
 def neural_cached(scene) -> bool:
     """Whether the default neural SDF of the scene's plug is cached or shipped (no training needed)."""
-    key = cache_key(default_plug(scene["plug"], connector_geometry(scene)).mesh(), NeuralSDFConfig())
+    key = cache_key(default_rigid("cantilever", scene["connector"], scene["plug"]).mesh(), NeuralSDFConfig())
     return cache_path(key).is_file() or shipped_path(key).is_file()
 
 

@@ -32,7 +32,7 @@ from _common import code_version
 
 import jsnap
 from jsnap._geometry.cantilever import mesh_cantilever
-from jsnap._geometry.plug import default_plug
+from jsnap._geometry.presets import default_rigid
 from jsnap._geometry.scene import connector_geometry, motion_stroke
 
 jsnap.configure_xla_cpu()
@@ -69,7 +69,7 @@ def main(argv=None) -> int:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
-        plug = default_plug(preset["plug"], geom)
+        plug = default_rigid("cantilever", preset["connector"], preset["plug"])
         surface = plug.mesh()
         surface.apply_translation(plug.start)
         surface.export(folder / "plug.stl")

@@ -1,7 +1,7 @@
 """Neural SDF of the default plug: training time and accuracy against the exact mesh SDF.
 
 Trains the default network (``NeuralSDFConfig()``: 3 → 64 → 64 → 64 → 1) on the default scene's
-plug (the rounded block of ``jsnap._geometry.plug.default_plug``, ``rounded_box_mesh``: 1.0 × 5.0 × 0.5 mm,
+plug (the rounded block of ``jsnap._geometry.presets.default_rigid``, ``rounded_box_mesh``: 1.0 × 5.0 × 0.5 mm,
 0.1 mm fillet, 5516 triangles) from scratch, timing it, and measures over points uniform in the
 contact shell ``|φ| ≤ 0.2 mm``:
 
@@ -33,8 +33,7 @@ import jsnap
 from jsnap._build.neural_sdf import NeuralSDFConfig, band_errors, cache_key, cache_path, save, summarise, train
 from jsnap._build.sdf import mesh_sdf_from_trimesh
 from jsnap._core.sdf import mesh_sdf_and_normal, neural_sdf_and_normal, rounded_box_sdf
-from jsnap._geometry.plug import default_plug
-from jsnap._geometry.scene import connector_geometry
+from jsnap._geometry.presets import default_rigid
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
@@ -87,7 +86,7 @@ def _main(argv=None):
     args = ap.parse_args(argv)
 
     scene = jsnap.load_scene()
-    plug = default_plug(scene["plug"], connector_geometry(scene))
+    plug = default_rigid("cantilever", scene["connector"], scene["plug"])
     half, radius = plug.half, plug.radius
     mesh = plug.mesh()
     config = NeuralSDFConfig()

@@ -37,8 +37,8 @@ import jsnap
 from jsnap._build.neural_sdf import load_or_train
 from jsnap._build.sdf import mesh_sdf_from_trimesh
 from jsnap._core.sdf import mesh_sdf_and_normal, neural_sdf_and_normal, rounded_box_sdf_and_normal
-from jsnap._geometry.plug import default_plug, rounded_box_mesh
-from jsnap._geometry.scene import connector_geometry
+from jsnap._geometry.plug import rounded_box_mesh
+from jsnap._geometry.presets import default_rigid
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
@@ -101,7 +101,7 @@ def _main(argv=None):
 
     load_at_start = os.getloadavg()
     scene = jsnap.load_scene()
-    plug = default_plug(scene["plug"], connector_geometry(scene))
+    plug = default_rigid("cantilever", scene["connector"], scene["plug"])
     half, radius = plug.half, plug.radius
     mesh = plug.mesh()
     net, info = load_or_train(mesh, progress=True)

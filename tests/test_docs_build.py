@@ -30,7 +30,7 @@ from urllib.parse import unquote, urlparse
 import pytest
 
 from jsnap._apps import scene_reference
-from jsnap._geometry.scene import SCHEMA, load_scene
+from jsnap._geometry.scene import CONNECTORS, SCHEMA, load_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
@@ -214,6 +214,13 @@ def test_scene_reference_shows_the_visible_keys_only():
     text = scene_reference.render()
     for section, keys in SCHEMA.items():
         part = text.split(f"\n## [{section}]\n", 1)[1].split("\n## ", 1)[0]
+        if section == "connector":  # each preset's keys in a table of its own, under ### type = "..."
+            tables = part.split("\n### ")
+            part = tables[0]
+            for kind, kind_keys in CONNECTORS.items():
+                table = next(t for t in tables[1:] if t.startswith(f'type = "{kind}"'))
+                rows = set(re.findall(r"^\| `(\w+)` \|", table, flags=re.M))
+                assert rows == {k for k, spec in kind_keys.items() if not spec.internal}, kind
         rows = set(re.findall(r"^\| `(\w+)` \|", part, flags=re.M))
         assert rows == {k for k, spec in keys.items() if not spec.internal}, section
         for spec in keys.values():

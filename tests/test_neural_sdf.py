@@ -287,15 +287,14 @@ def test_shipped_weights_are_the_default_plugs(tmp_path, monkeypatch):
     within the training-time accuracy of the exact SDF of the plug that the default scene
     builds now. Where that plug's mesh has the shipped key they are used without training;
     where a mesh library triangulates it differently (another key), the plug is trained."""
-    from jsnap._geometry.plug import default_plug
-    from jsnap._geometry.scene import connector_geometry
+    from jsnap._geometry.presets import default_rigid
 
     files = sorted(nsdf.SHIPPED.glob("*.npz"))
     assert len(files) == 1
     net, meta = nsdf.load(files[0])  # verifies the checksum
     assert meta["config"] == nsdf.NeuralSDFConfig().to_dict() and files[0].stem == meta["key"][:32]
     scene = jsnap.load_scene()
-    plug = default_plug(scene["plug"], connector_geometry(scene)).mesh()
+    plug = default_rigid("cantilever", scene["connector"], scene["plug"]).mesh()
     report = nsdf.accuracy_report(net, plug, points=4000)
     assert report["mae_mm"] < 2e-3 and report["normal_median_deg"] < 2.0, report
 
@@ -380,8 +379,7 @@ def test_cli_train_sdf(mesh, tmp_path, monkeypatch, capsys):
 def test_scene_with_neural_sdf_builds_and_dispatches(tmp_path, monkeypatch):
     from jsnap._build import model as _model
     from jsnap._core.sdf import BoundedSDF
-    from jsnap._geometry.plug import default_plug
-    from jsnap._geometry.scene import connector_geometry
+    from jsnap._geometry.presets import default_rigid
 
     monkeypatch.setenv("JSNAP_CACHE", str(tmp_path / "cache"))
     # The default settings take a minute to train; the wiring is the same with tiny ones.
@@ -395,7 +393,7 @@ def test_scene_with_neural_sdf_builds_and_dispatches(tmp_path, monkeypatch):
     assert isinstance(model.rigid, BoundedSDF) and isinstance(model.rigid.exact, NeuralSDF)
     # Trained on the scene's own plug mesh, and found in the cache under its key.
     assert (tmp_path / "cache" / "neural_sdf").is_dir()
-    plug = default_plug(scene["plug"], connector_geometry(scene)).mesh()
+    plug = default_rigid("cantilever", scene["connector"], scene["plug"]).mesh()
     assert nsdf.load_or_train(plug, QUICK)[1]["cached"]
     with jax.enable_x64(True):  # the model's float64 kernels, called directly
         q = jnp.asarray(np.random.default_rng(4).uniform(-1, 1, (10, 3)))

@@ -24,7 +24,7 @@ from jsnap._geometry.cantilever import mesh_cantilever
 from jsnap._geometry.errors import SceneError
 from jsnap._geometry.motion import quat_matrix, quat_multiply, sample_poses
 from jsnap._geometry.part import PartError
-from jsnap._geometry.plug import default_plug
+from jsnap._geometry.presets import default_rigid
 from jsnap._geometry.scene import connector_geometry, with_internal
 
 MATERIAL = {"youngs_modulus": 2200.0, "poissons_ratio": 0.35, "density": 1.05e-9}
@@ -46,7 +46,7 @@ def files(tmp_path_factory):
         d / "hook.inp",
         meshio.Mesh(mesh.points, [("tetra", mesh.cells)], point_sets={"root": mesh.base_nodes}),
     )
-    plug = default_plug(scene["plug"], geom)
+    plug = default_rigid("cantilever", scene["connector"], scene["plug"])
     plug_mesh = plug.mesh()
     plug_mesh.apply_translation(plug.start)
     plug_mesh.export(d / "plug.stl")
@@ -371,21 +371,33 @@ def test_preset_and_file_sections_are_exclusive(files):
         jsnap.Scene.from_dict({k: v for k, v in raw.items() if k != "connector"} | {"part": _stl_part(files)})
 
 
-def test_general_sampling_on_the_preset_covers_its_section_points():
+@pytest.mark.parametrize("size", [0.8, 1.2])
+def test_general_sampling_on_the_preset_covers_its_section_points(size):
     """The general surface sampling, run on the preset hook, contains every point of the
     preset's own section sampling (plus points on its end faces): on a prismatic part moved
-    along its faces it is the same line grid."""
+    along its faces it is the same line grid. And it sees the same convex edges: every corner
+    point of the section (ramp/flat, flat/retention face, ...) away from the end faces is a
+    corner of the surface sampling too, with the same two face normals, also where a sampling
+    line leaves a face through a mesh vertex (the structured mesh has nodes on the line y = 0)."""
     from jsnap._build import model as M
     from jsnap._build.samples import section_samples, surface_samples
 
-    scene = with_internal(jsnap.load_scene(), {"contact.sampling": "surface"})
+    scene = with_internal(jsnap.load_scene(), {"contact.sampling": "surface", "solver.mesh_size": size})
     g = M._geometry(scene)
     ct = scene["contact"]
     lo, hi = g.rigid.start - g.rigid.half - 0.5, g.rigid.start + g.rigid.half + 0.5
     lo[2] -= 2.4
-    section = section_samples(g.cantilever, lo, hi, ct["spacing"], ct["width_spacing"])[0]
-    surface = surface_samples(g.mesh, lo, hi, g.axis, ct["spacing"], ct["width_spacing"])[0]
+    sec = section_samples(g.cantilever, lo, hi, ct["spacing"], ct["width_spacing"])
+    sur = surface_samples(g.mesh, lo, hi, g.axis, ct["spacing"], ct["width_spacing"])
     key = lambda X: {tuple(np.round(x, 6)) for x in X}  # noqa: E731
-    assert key(section) <= key(surface)
-    extra = np.array(sorted(key(surface) - key(section)))
+    assert key(sec[0]) <= key(sur[0])
+    extra = np.array(sorted(key(sur[0]) - key(sec[0])))
     np.testing.assert_allclose(np.abs(extra[:, 1]), 2.0)  # only on the end faces y = +-b/2
+    where = {tuple(np.round(x, 6)): i for i, x in enumerate(sur[0])}
+    corners = np.flatnonzero(sec[2] & (np.abs(sec[0][:, 1]) < 1.9))
+    assert corners.size >= 9  # three convex edges (top/ramp, ramp/flat, flat/retention), three lines
+    for i in corners:
+        j = where[tuple(np.round(sec[0][i], 6))]
+        assert sur[2][j], sec[0][i]
+        pair = lambda n: sorted(map(tuple, np.round(n, 6)))  # noqa: E731
+        assert pair(sur[1][j]) == pair(sec[1][i]), sec[0][i]

@@ -20,7 +20,7 @@ from jsnap._build.fem import assemble, lame
 from jsnap._build.memory import BuildError
 from jsnap._build.samples import locate_on_faces, reachable_faces, section_samples
 from jsnap._geometry.cantilever import mesh_cantilever
-from jsnap._geometry.plug import default_plug
+from jsnap._geometry.presets import default_rigid
 from jsnap._geometry.scene import connector_geometry, motion_stroke
 
 SMALL = {"solver.mesh_size": 2.0, "contact.width_spacing": 2.0}
@@ -135,7 +135,7 @@ def test_contact_points_located_as_by_brute_force(scene, asm):
     """The k-d tree's candidate faces give the faces, nodes and weights that testing every point
     against every face gives (an independent search, written out here)."""
     geom = connector_geometry(scene)
-    plug = default_plug(scene["plug"], geom)
+    plug = default_rigid("cantilever", scene["connector"], scene["plug"])
     lo, hi = plug.start - plug.half - 1.0, plug.start + plug.half + 1.0
     lo[2] -= motion_stroke(scene, geom)
     faces = reachable_faces(asm.mesh, lo, hi)

@@ -37,14 +37,15 @@ def train_sdf(args) -> int:
         if args.mesh is None:
             import jsnap
             from jsnap._geometry.part import load_rigid
-            from jsnap._geometry.plug import default_plug
-            from jsnap._geometry.scene import connector_geometry, scene_file
+            from jsnap._geometry.presets import default_rigid
+            from jsnap._geometry.scene import scene_file
 
             scene = jsnap.load_scene(args.scene)
             if scene["rigid"]:
                 mesh = load_rigid(scene_file(scene, "rigid.mesh"), units=scene["rigid"]["units"]).mesh
             else:
-                mesh = default_plug(scene["plug"], connector_geometry(scene)).mesh()
+                c = scene["connector"]
+                mesh = default_rigid(c["type"], c, scene["plug"]).mesh()
             what = f"the rigid part of {scene.source}"
         else:
             mesh = nsdf.load_mesh(args.mesh)

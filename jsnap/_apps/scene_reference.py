@@ -15,7 +15,7 @@ import math
 import tomllib
 
 from jsnap._geometry import scene as _scene
-from jsnap._geometry.scene import REQUIRED, SCHEMA, Key, default_scene_path
+from jsnap._geometry.scene import CONNECTORS, REQUIRED, SCHEMA, Key, default_scene_path
 
 __all__ = ["render"]
 
@@ -23,10 +23,10 @@ COMMAND = "python -m jsnap._apps.scene_reference > docs/scene-reference.md"
 
 # What each section describes (the schema itself says what each key means).
 _SECTIONS = {
-    "connector": "The deformable part: the canonical cantilever snap hook. Coordinates in mm: the "
-    "arm spans x in [0, thickness] (x is the bending direction), y in [-width/2, width/2] and z "
-    "from its fixed root face z = 0 to the retention face at z = length; the hook protrudes by "
-    "the undercut in +x beyond the arm's outer face, and the rigid part comes down along -z.",
+    "connector": "The deformable part: a connector preset, chosen by `type`, each with its own keys "
+    "(below). Every preset generates what a user could give in files (a tet mesh with its fixed "
+    "region, a rigid part, a straight motion along -z); shipped scenes: `jsnap/scenes/<type>.toml` "
+    "(`default.toml` for the cantilever).",
     "part": "The deformable part from a file, instead of [connector] (see "
     "[your own connector](own-connector.md)): tetrahedra, or a closed surface that jsnap tet-meshes "
     "with gmsh at solver.mesh_size; its fixed region a named group of the file or a box. Paths are "
@@ -45,6 +45,22 @@ _SECTIONS = {
     "control; impedance control couples the position.",
     "solver": "The numerical model: time step, the deformable part's model and elements, the "
     "rigid part's signed distance, precision.",
+}
+
+# What each connector preset is (its keys say what each dimension means).
+_CONNECTORS = {
+    "cantilever": "The canonical cantilever snap hook. Coordinates in mm: the arm spans x in "
+    "[0, thickness] (x is the bending direction), y in [-width/2, width/2] and z from its fixed "
+    "root face z = 0 to the retention face at z = length; the hook protrudes by the undercut in +x "
+    "beyond the arm's outer face, and the rigid part (a block whose face lies in the plane of the "
+    "arm's outer face at the tip) comes down along -z.",
+    "two_hook_clip": "Two cantilevers of the section above, mirror images about x = 0, hooks "
+    "pointing inwards, their inner faces `gap` apart, rising from z = 0 out of a base block "
+    "`base_thickness` thick (its bottom face z = -base_thickness is fixed) that reaches "
+    "`base_margin` beyond the arms' outer faces; arms and base are `width` wide. The rigid part is "
+    "a block exactly `gap` wide pushed down between the hooks: both hooks are squeezed apart at "
+    "once. Meshed with gmsh at `solver.mesh_size`, along the hooks' edges at the smaller of that "
+    "and 2.5 undercuts.",
 }
 
 _TYPES = {float: "number", int: "integer", bool: "boolean", str: "string", list: "array"}
@@ -108,6 +124,8 @@ def _minimal_example() -> str:
     shipped = tomllib.loads(default_scene_path().read_text())
     lines = []
     for section, keys in SCHEMA.items():
+        if section == "connector" and section in shipped:
+            keys = {**keys, **CONNECTORS[shipped[section]["type"]]}
         required = [k for k, spec in keys.items() if spec.default is REQUIRED and not spec.internal]
         if not required or section not in shipped:  # the optional sections of parts from files
             continue
@@ -152,8 +170,10 @@ def _rules() -> list[str]:
         "of a path's largest displacement from its start.",
         "**The elements must resolve the connector.** `solver.mesh_size` may be at most "
         f"{_scene._COARSEST:g} times the thinnest feature of the connector (the smallest of its "
-        "`thickness`, `tip_thickness`, `width` and `undercut`), and a `SceneWarning` says when it is "
-        "larger than that feature itself (less than one element across it: a coarse, stiff model).",
+        "`thickness`, `tip_thickness`, `width` and `undercut`; for the two-hook clip, whose hooks are "
+        "meshed finer on their own, of `thickness`, `width` and `base_thickness`), and a "
+        "`SceneWarning` says when it is larger than that feature itself (less than one element "
+        "across it: a coarse, stiff model).",
     ]
 
 
@@ -204,12 +224,20 @@ def render() -> str:
         out += ["", f"## [{section}]", ""]
         if section in _SECTIONS:
             out += [_SECTIONS[section], ""]
-        out += [
-            "| key | type | unit | default | allowed | meaning |",
-            "|---|---|---|---|---|---|",
-            *[_row(section, k, spec) for k, spec in visible],
-        ]
+        out += _table(section, visible)
+        if section == "connector":
+            for kind, kind_keys in CONNECTORS.items():
+                out += ["", f'### type = "{kind}"', "", _CONNECTORS[kind], ""]
+                out += _table(section, [(k, spec) for k, spec in kind_keys.items() if not spec.internal])
     return "\n".join(out) + "\n"
+
+
+def _table(section: str, keys: list[tuple[str, Key]]) -> list[str]:
+    return [
+        "| key | type | unit | default | allowed | meaning |",
+        "|---|---|---|---|---|---|",
+        *[_row(section, k, spec) for k, spec in keys],
+    ]
 
 
 if __name__ == "__main__":

@@ -57,6 +57,11 @@ def check_out_dir(out) -> Path:
     return path
 
 
+# Presets made of cantilever hooks with a rigid root, and how many hooks the rigid part deflects
+# at once (the design guide's beam formulas hold per hook).
+_HOOKS = {"cantilever": 1, "two_hook_clip": 2}
+
+
 def design_guide_strain(scene) -> float | None:
     """Snap-fit design-guide strain at the root when the hook is deflected by the undercut:
     eps = 1.5 h y / L^2 (constant arm) or h y / (1.09 L^2) (arm tapered to h/2), dimensionless
@@ -66,28 +71,28 @@ def design_guide_strain(scene) -> float | None:
     stress concentration at the root, the deflection applied at z = L.
     """
     c = scene["connector"]
-    if not c:
+    if not c or c["type"] not in _HOOKS:
         return None
     L, h, y = c["length"], c["thickness"], c["undercut"]
-    h_tip = c["tip_thickness"] or h
+    h_tip = c.get("tip_thickness") or h
     return y * h / (1.09 * L**2) if abs(h_tip - h / 2) < 1e-9 else 1.5 * h * y / L**2
 
 
 def design_guide_force(scene) -> float | None:
     """Snap-fit design-guide mating force W = P (mu + tan a) / (1 - mu tan a), N, of the
-    cantilever preset (None for a part from a file).
+    hook presets, the sum over the hooks (None for a part from a file).
 
     P = b h^2 E eps / (6 L) with eps from :func:`design_guide_strain`; a beam-theory estimate
     (see the validation page for how far it is off).
     """
     c, m = scene["connector"], scene["material"]
-    if not c:
+    if not c or c["type"] not in _HOOKS:
         return None
     L, h, b = c["length"], c["thickness"], c["width"]
     eps = design_guide_strain(scene)
     P = b * h**2 * m["youngs_modulus"] * eps / (6 * L)
     mu, ta = scene["contact"]["friction"], math.tan(math.radians(c["lead_angle"]))
-    return P * (mu + ta) / (1 - mu * ta)
+    return _HOOKS[c["type"]] * P * (mu + ta) / (1 - mu * ta)
 
 
 def _finite(x):

@@ -1,10 +1,12 @@
 """Contact candidate points on the deformable part's surface (host side).
 
-The canonical cantilever's candidates are its section outline sampled finely along each side
-and coarsely across the width, kept where the rigid part can reach along its path
-(:func:`section_samples`), each located on a boundary face of the mesh and interpolated from that
-face's nodes with the element's own shape functions (:func:`locate_on_faces`), so that contact
-resolution does not depend on the FEM resolution. Units: mm.
+Candidates lie where the rigid part can reach along its path: for every part but the canonical
+cantilever, on its surface (:func:`surface_samples`: flat patches sampled finely along lines that
+run with the motion and coarsely across them); for the canonical cantilever, on its section
+outline (:func:`section_samples`). Each point is located on a boundary face of the mesh and
+interpolated from that face's nodes with the element's own shape functions
+(:func:`locate_on_faces`), so that contact resolution does not depend on the FEM resolution.
+Units: mm.
 """
 
 from __future__ import annotations
@@ -345,18 +347,19 @@ def surface_samples(mesh: TetMesh, lo, hi, direction, spacing: float, width_spac
             ends = {0: (members[t_lo], e_lo[t_lo]), m: (members[t_hi], e_hi[t_hi])}
             for j in np.flatnonzero(inside):
                 p = o + us[j] * u + vk * v
+                # The stencil along the line and across it, each arm shortened until it stays on
+                # the patch (a line may cross a non-convex patch in several pieces).
                 own = [
-                    o + max(u_lo, us[j] - STENCIL_SIDE) * u + vk * v,
-                    o + min(u_hi, us[j] + STENCIL_SIDE) * u + vk * v,
+                    p - _on_patch_step(P2, us[j], vk, (-1.0, 0.0), us[j] - u_lo, STENCIL_SIDE, tol * scale) * u,
+                    p + _on_patch_step(P2, us[j], vk, (1.0, 0.0), u_hi - us[j], STENCIL_SIDE, tol * scale) * u,
                 ]
-                for sign in (-1.0, 1.0):  # across, clipped to the patch (and shortened to stay on it)
-                    step = float(np.clip(vk + sign * STENCIL_WIDTH, v_lo, v_hi)) - vk
-                    while not _inside(P2, np.array([[us[j], vk + step]]), tol * scale)[0]:
-                        step = 0.0 if abs(step) < 1e-3 * STENCIL_WIDTH else 0.5 * step
-                    own.append(p + step * v)
+                for sign in (-1.0, 1.0):
+                    room = (vk - v_lo) if sign < 0 else (v_hi - vk)
+                    step = _on_patch_step(P2, us[j], vk, (0.0, sign), room, STENCIL_WIDTH, tol * scale)
+                    own.append(p + sign * step * v)
                 other, n_other, corner = own, n, False
                 if j in ends:
-                    face, edge = ends[j]
+                    face, edge = _boundary_edge_at(P2, members, ends[j], neighbour, label, us[j], vk, 4 * tol)
                     nb = neighbour[face, edge]
                     if nb >= 0 and label[nb] != patch and np.dot(unit[nb], n) < flat:
                         far = tri[nb].mean(axis=0)
@@ -405,6 +408,44 @@ def surface_samples(mesh: TetMesh, lo, hi, direction, spacing: float, width_spac
     keep = keep[np.all((X[keep] >= lo) & (X[keep] <= hi), axis=1)]
     _, G = np.unique(G[keep], return_inverse=True)
     return X[keep], N[keep], C[keep], S[keep], G, O[keep]
+
+
+def _boundary_edge_at(P2, members, found, neighbour, label, u: float, v: float, tol: float):
+    """The (face, edge) of the patch's boundary through the line's end (u, v): where the line
+    leaves the patch through a mesh vertex, the edge :func:`_line_hits` gives may be an interior
+    one (its neighbour in the same patch); then a boundary edge through that point is taken, so
+    that the convex edge of the part there is seen. ``found``: the edge the line hit."""
+    face, edge = found
+    nb = neighbour[face, edge]
+    if nb < 0 or label[nb] != label[face]:
+        return face, edge
+    a = P2
+    b = P2[:, [1, 2, 0]]
+    d = b - a
+    t = np.clip(np.einsum("tek,tek->te", np.array([u, v]) - a, d) / np.einsum("tek,tek->te", d, d), 0.0, 1.0)
+    dist = np.linalg.norm(a + t[..., None] * d - np.array([u, v]), axis=-1)
+    own = label[members][:, None]
+    nbr = neighbour[members]
+    boundary = (nbr < 0) | (label[np.maximum(nbr, 0)] != own)
+    hit = np.argwhere((dist <= max(tol, 1e-9)) & boundary)
+    if hit.size == 0:
+        return found
+    t_i, e_i = hit[0]
+    return members[t_i], int(e_i)
+
+
+def _on_patch_step(P2, u0: float, v0: float, d, room: float, length: float, tol: float) -> float:
+    """The longest step <= min(``length``, ``room``) from (u0, v0) along the unit direction ``d``
+    whose segment stays on the patch's triangles ``P2`` (checked at ten points along it),
+    halved until it does; 0 when none longer than a thousandth of ``length`` does."""
+    step = min(length, max(room, 0.0))
+    fractions = np.linspace(0.1, 1.0, 10)[:, None]
+    while step >= 1e-3 * length:
+        q = np.array([u0, v0]) + fractions * step * np.asarray(d)
+        if np.all(_inside(P2, q, tol)):
+            return float(step)
+        step *= 0.5
+    return 0.0
 
 
 def _dedupe(X: np.ndarray, corner: np.ndarray, tol: float) -> np.ndarray:

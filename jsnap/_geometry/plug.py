@@ -6,15 +6,12 @@ Units: mm.
 from __future__ import annotations
 
 import numpy as np
-import trimesh
 
-from jsnap._geometry.cantilever import Cantilever
-
-__all__ = ["Plug", "default_plug", "rounded_box_mesh"]
+__all__ = ["Plug", "rounded_box_mesh"]
 
 
 class Plug:
-    """The preset rigid part: a rounded box and where it starts.
+    """A preset rigid part: a rounded box and where it starts.
 
     Attributes:
         half: (3,) half extents, mm.   radius: fillet radius, mm.
@@ -29,20 +26,6 @@ class Plug:
     def mesh(self):
         """Its closed triangle mesh (``trimesh.Trimesh``), in its own frame."""
         return rounded_box_mesh(self.half, self.radius)
-
-
-def default_plug(plug: dict, geom: Cantilever) -> Plug:
-    """The preset plug of a cantilever scene from the scene's ``[plug]`` table.
-
-    A rounded block whose face x = h_tip lies in the plane of the arm's outer face at the tip
-    (so it must push the hook by the full undercut), 1.25 y_u thick, b + 1 mm wide and
-    ``height`` tall, starting ``clearance`` above the hook's top (as in the CalculiX reference).
-    """
-    thick = plug["thickness"] or 1.25 * geom.undercut
-    width = plug["width"] or geom.width + 1.0
-    half = np.array([thick, width, plug["height"]]) / 2
-    start = np.array([geom.h_tip + half[0], 0.0, geom.z_top + plug["clearance"] + half[2]])
-    return Plug(half, plug["fillet"], start)
 
 
 def rounded_box_mesh(half_extents, radius, subdivisions=4):
@@ -65,6 +48,8 @@ def rounded_box_mesh(half_extents, radius, subdivisions=4):
     Returns:
         A watertight, consistently wound ``trimesh.Trimesh`` with outward normals, float64.
     """
+    import trimesh  # host library: only builds need the plug's surface
+
     h = np.asarray(half_extents, dtype=np.float64)
     radius = float(radius)
     if h.shape != (3,) or not np.all(h > 0):

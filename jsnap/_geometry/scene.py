@@ -30,6 +30,7 @@ import numpy as np
 from jsnap._geometry.cantilever import Cantilever
 from jsnap._geometry.errors import SceneError, SceneWarning
 from jsnap._geometry.motion import latching_stroke, read_pose_csv
+from jsnap._geometry.presets import connector_features, default_rigid, hook_of
 
 __all__ = [
     "MIN_STEPS",
@@ -178,14 +179,13 @@ _PARSERS = {
 # The length unit of a part file's coordinates ([part] and [rigid]).
 _UNITS = Key(str, "mm", choices=("mm", "m", "in"), doc="length unit of the file's coordinates")
 
-SCHEMA: dict[str, dict[str, Key]] = {
-    "connector": {
-        "type": Key(str, choices=("cantilever",), doc="connector family (the canonical cantilever snap hook)"),
-        "length": _pos("mm", doc="L, arm length from the fixed root (z = 0) to the retention face"),
-        "thickness": _pos("mm", doc="h, arm thickness at the root (the bending direction x)"),
-        "tip_thickness": _pos("mm", None, "h_tip, arm thickness at z = L (tapered arm); default: thickness"),
-        "width": _pos("mm", doc="b, arm width (y)"),
-        "undercut": _pos("mm", doc="y_u, how far the hook protrudes beyond the arm's outer face"),
+
+def _hook_keys(arm: str, bending: str) -> dict[str, Key]:
+    """The keys of a hook section (the cantilever's, the clip's arms', the annular lip's)."""
+    return {
+        "length": _pos("mm", doc=f"L, {arm} length from the fixed root (z = 0) to the retention face"),
+        "thickness": _pos("mm", doc=f"h, {arm} thickness at the root ({bending})"),
+        "undercut": _pos("mm", doc="y_u, how far the hook protrudes beyond the face it stands on"),
         "lead_angle": Key(
             float, REQUIRED, "deg", 0.0, 90.0, True, True, doc="alpha, lead ramp to the insertion axis"
         ),
@@ -200,6 +200,49 @@ SCHEMA: dict[str, dict[str, Key]] = {
             doc="alpha', retention face (90 = square, permanent)",
         ),
         "flat": _nonneg("mm", doc="land between the retention face and the lead ramp"),
+    }
+
+
+def _ordered(keys: dict[str, Key], order: str) -> dict[str, Key]:
+    return {k: keys[k] for k in order.split()}
+
+
+# The keys of each connector preset (connector.type); SCHEMA["connector"] holds only the type.
+CONNECTORS: dict[str, dict[str, Key]] = {
+    "cantilever": _ordered(
+        {
+            **_hook_keys("arm", "the bending direction x"),
+            "tip_thickness": _pos(
+                "mm", None, "h_tip, arm thickness at z = L (tapered arm); default: thickness"
+            ),
+            "width": _pos("mm", doc="b, arm width (y)"),
+        },
+        "length thickness tip_thickness width undercut lead_angle return_angle flat",
+    ),
+    "two_hook_clip": _ordered(
+        {
+            **_hook_keys("arm", "x"),
+            "width": _pos("mm", doc="b, width of the arms and the base (y)"),
+            "gap": _pos("mm", 4.0, "distance between the arms' inner faces (x), the rigid block's width"),
+            "base_thickness": _pos(
+                "mm", 2.0, "the base block's thickness under the arms (its bottom face is fixed)"
+            ),
+            "base_margin": _nonneg(
+                "mm", 1.0, "how far the base block reaches beyond the arms' outer faces (x)"
+            ),
+        },
+        "length thickness width undercut lead_angle return_angle flat gap base_thickness base_margin",
+    ),
+}
+
+SCHEMA: dict[str, dict[str, Key]] = {
+    "connector": {
+        "type": Key(
+            str,
+            choices=tuple(CONNECTORS),
+            doc="connector preset: the canonical cantilever hook, or two hooks facing each other on a "
+            "base block (two_hook_clip)",
+        ),
     },
     "part": {
         "mesh": Key(
@@ -256,7 +299,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "auto",
             choices=("auto", "surface"),
             internal=True,
-            doc="contact candidates: the preset's own (its section outline) or the general surface sampling",
+            doc="contact candidates: the canonical cantilever's own (its section outline) or the general "
+            "surface sampling (every other part's)",
         ),
         "gradient": Key(
             str,
@@ -468,6 +512,8 @@ class Scene:
             supplied = raw.get(section, {})
             if not isinstance(supplied, Mapping):
                 raise SceneError(f"[{section}] must be a table, got {supplied!r}")
+            if section == "connector":
+                keys = _connector_keys(supplied, internal or not (given is None or "connector.type" in given))
             visible = [k for k, spec in keys.items() if not spec.internal]
             for key in supplied:
                 spec = keys.get(key)
@@ -491,6 +537,15 @@ class Scene:
         scene = cls(MappingProxyType(sections), source)
         _check_consistency(scene)
         return scene
+
+
+def _connector_keys(supplied: Mapping[str, Any], internal: bool) -> dict[str, Key]:
+    """The keys of the [connector] table of the type it names."""
+    spec = SCHEMA["connector"]["type"]
+    if "type" not in supplied:
+        raise SceneError(f"connector.type is required but missing ({spec.doc})")
+    kind = _coerce("connector.type", spec, supplied["type"], internal)
+    return {"type": spec, **CONNECTORS[kind]}
 
 
 # Sections that may be left out: the user's parts replace the presets.
@@ -528,10 +583,10 @@ def _split(dotted: str) -> tuple[str, str]:
 
 
 def connector_geometry(scene: Scene) -> Cantilever:
-    """The scene's connector as a :class:`jsnap._geometry.cantilever.Cantilever` (validated)."""
-    c = scene["connector"]
-    keys = ("length", "thickness", "tip_thickness", "width", "undercut", "lead_angle")
-    return Cantilever(**{k: c[k] for k in keys}, return_angle=c["return_angle"], flat=c["flat"])
+    """The hook section of the scene's connector preset (the cantilever's arm, the clip's arms,
+    the annular snap's wall and lip) as a :class:`jsnap._geometry.cantilever.Cantilever`
+    (validated)."""
+    return hook_of(scene["connector"])
 
 
 def motion_stroke(scene: Scene, geom: Cantilever | None) -> float:
@@ -624,6 +679,7 @@ def _check_consistency(scene: Scene) -> None:
     if c:
         try:
             geom = connector_geometry(scene)
+            features = connector_features(c["type"], c)
         except ValueError as err:
             raise SceneError(str(err)) from None
         if c["undercut"] > _MAX_DEFLECTION_RATIO * c["length"]:
@@ -636,7 +692,8 @@ def _check_consistency(scene: Scene) -> None:
             )
     if not scene["rigid"]:
         p = scene["plug"]
-        half = 0.5 * min(p["thickness"] or 1.25 * c["undercut"], p["width"] or c["width"] + 1.0, p["height"])
+        rigid = default_rigid(c["type"], c, p)
+        half = float(np.min(rigid.half))
         if p["fillet"] > half:
             raise SceneError(
                 f"plug.fillet = {p['fillet']!r}: must be <= half the plug's smallest side ({half:g} mm)"
@@ -657,12 +714,6 @@ def _check_consistency(scene: Scene) -> None:
         )
     if not c:
         return
-    features = {
-        "thickness": c["thickness"],
-        "tip_thickness": geom.h_tip,
-        "width": c["width"],
-        "undercut": c["undercut"],
-    }
     name, thinnest = min(features.items(), key=lambda kv: kv[1])
     if s["mesh_size"] > _COARSEST * thinnest:
         raise SceneError(

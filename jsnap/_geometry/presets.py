@@ -1,0 +1,222 @@
+"""Connector presets (``connector.type``): generators of the same things a user can give in
+files — a deformable part (tetrahedra and its fixed region), a default rigid part and a default
+straight motion along −z. After the geometry layer only the canonical cantilever is told
+apart: it keeps its own contact sampling along its section (``jsnap._build.samples``).
+
+* ``cantilever`` — the canonical hook (:class:`jsnap._geometry.cantilever.Cantilever`),
+  structured tetrahedra;
+* ``two_hook_clip`` — two cantilevers of that section, mirror images about ``x = 0`` with their
+  hooks pointing inwards, their inner faces ``gap`` apart, rising from ``z = 0`` out of a base
+  block ``base_thickness`` thick whose bottom face is fixed; the rigid part is a block exactly
+  ``gap`` wide that squeezes between the hooks.
+
+The clip is tet-meshed with gmsh (the mesher the parts from files use) from its exact CAD solid,
+the section polygon extruded over the width, finer along the hooks' edges (see
+:func:`_hook_size`). Units: mm, degrees.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from jsnap._geometry.cantilever import Cantilever, mesh_cantilever
+from jsnap._geometry.mesh import TetMesh, check_quality
+from jsnap._geometry.motion import latching_stroke
+from jsnap._geometry.plug import Plug
+
+__all__ = ["PRESETS", "Preset", "clip_section", "connector_features", "default_rigid", "generate", "hook_of"]
+
+PRESETS = ("cantilever", "two_hook_clip")  # the keys of jsnap._geometry.scene.CONNECTORS
+
+
+@dataclass(frozen=True, eq=False)
+class Preset:
+    """What a preset generates.
+
+    Attributes:
+        mesh: the deformable part (mm), its fixed region in ``base_nodes``.
+        plug: the default rigid part (a block with rounded edges) and its start.
+        stroke: the default travel along −z, mm: the rigid part passes 0.3 mm below the
+            retention faces (it latches).
+    """
+
+    mesh: TetMesh
+    plug: Plug
+    stroke: float
+
+
+def hook_of(c: Mapping) -> Cantilever:
+    """The hook section of a preset's ``[connector]`` table (the cantilever's arm, each of the
+    clip's arms). Raises ``ValueError`` naming the key."""
+    return Cantilever(
+        length=c["length"],
+        thickness=c["thickness"],
+        width=c["width"],
+        undercut=c["undercut"],
+        lead_angle=c["lead_angle"],
+        return_angle=c["return_angle"],
+        flat=c["flat"],
+        tip_thickness=c.get("tip_thickness"),
+    )
+
+
+def connector_features(kind: str, c: Mapping) -> dict[str, float]:
+    """The preset's thin features (key -> mm) that the elements must resolve; checks the
+    preset's own rules (``ValueError`` naming the key)."""
+    hook = hook_of(c)
+    if kind == "cantilever":
+        return {
+            "thickness": c["thickness"],
+            "tip_thickness": hook.h_tip,
+            "width": c["width"],
+            "undercut": c["undercut"],
+        }
+    if kind == "two_hook_clip":
+        if not c["gap"] > 2 * c["undercut"]:
+            raise ValueError(
+                f"connector.gap = {c['gap']!r}: the two hooks' lips would touch or overlap; the gap must be "
+                f"more than twice connector.undercut ({2 * c['undercut']:g} mm)"
+            )
+        # The hooks' lips are meshed finer on their own (see generate).
+        return {"thickness": c["thickness"], "width": c["width"], "base_thickness": c["base_thickness"]}
+    raise ValueError(f"connector.type = {kind!r}: must be one of {', '.join(PRESETS)}")
+
+
+# --------------------------------------------------------------------------------------------
+# Sections and their meshes
+# --------------------------------------------------------------------------------------------
+
+
+def _mirror_hook(hook: Cantilever, inner: float) -> np.ndarray:
+    """The right arm's section (x, z) of the clip, counter-clockwise from its outer root
+    corner: the cantilever's polygon with x -> inner + h - x (its hook on the inner face)."""
+    p = hook.section()  # (0,0) (h,0) (h_tip,L) (ret) (flat end) (h_tip,z_top) (0,z_top)
+    x = inner + hook.thickness - p[:, 0]
+    q = np.stack([x, p[:, 1]], axis=1)
+    # Mirroring reverses the orientation: walk it backwards from (inner + h, 0).
+    return q[[0, 6, 5, 4, 3, 2, 1]]
+
+
+def clip_section(c: Mapping) -> np.ndarray:
+    """(k, 2) section polygon (x, z) of the two-hook clip, counter-clockwise, mm."""
+    hook = hook_of(c)
+    a, h, m, tb = 0.5 * c["gap"], c["thickness"], c["base_margin"], c["base_thickness"]
+    X = a + h + m
+    right = _mirror_hook(hook, a)  # (a+h,0) (a+h,zt) (a,zt) (flat end) (ret) (a,L) (a,0)
+    left = right[::-1] * [-1.0, 1.0]  # (-a,0) (-a,L) ... (-a-h,zt) (-a-h,0)
+    return np.concatenate([[[-X, -tb], [X, -tb], [X, 0.0]], right, left, [[-X, 0.0]]])
+
+
+def _gmsh_mesh(section: np.ndarray, *, width: float, size: float, fine: float, z_fine: float) -> tuple:
+    """Tetrahedra (points (n, 3), cells (m, 4)) of the section polygon (x, z) extruded over
+    ``y in [-width/2, width/2]``; elements of ``size``, ``fine`` on the edges at
+    ``z >= z_fine`` (the hooks), growing to ``size`` within ``2 size`` of them."""
+    import gmsh
+
+    initialised = gmsh.isInitialized()
+    if not initialised:
+        gmsh.initialize(interruptible=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.add("jsnap-preset")
+        occ = gmsh.model.occ
+        pts = [occ.addPoint(x, -0.5 * width, z) for x, z in section]
+        lines = [occ.addLine(pts[i], pts[(i + 1) % len(pts)]) for i in range(len(pts))]
+        face = occ.addPlaneSurface([occ.addCurveLoop(lines)])
+        occ.extrude([(2, face)], 0.0, width, 0.0)
+        occ.synchronize()
+        big = 10.0 * float(np.max(np.abs(section))) + 10.0
+        eps = 1e-6 * big
+        hooks = gmsh.model.getEntitiesInBoundingBox(-big, -big, z_fine - eps, big, big, big, dim=1)
+        field = gmsh.model.mesh.field
+        dist = field.add("Distance")
+        field.setNumbers(dist, "CurvesList", [tag for _, tag in hooks])
+        field.setNumber(dist, "Sampling", 50)
+        grade = field.add("Threshold")
+        field.setNumber(grade, "InField", dist)
+        for name, v in (("SizeMin", fine), ("SizeMax", size), ("DistMin", 0.0), ("DistMax", 2.0 * size)):
+            field.setNumber(grade, name, v)
+        field.setAsBackgroundMesh(grade)
+        gmsh.option.setNumber("Mesh.MeshSizeMax", size)
+        gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
+        gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
+        gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
+        gmsh.option.setNumber("Mesh.Optimize", 1)
+        gmsh.model.mesh.generate(3)
+        tags, coords, _ = gmsh.model.mesh.getNodes()
+        etypes, _, enodes = gmsh.model.mesh.getElements(3)
+    finally:
+        gmsh.model.remove()
+        if not initialised:
+            gmsh.finalize()
+    index = np.zeros(int(tags.max()) + 1, np.int64)
+    index[tags.astype(np.int64)] = np.arange(tags.size)
+    cells = index[np.asarray(enodes[list(etypes).index(4)], np.int64).reshape(-1, 4)]
+    points = coords.reshape(-1, 3)
+    used = np.unique(cells)
+    renumber = -np.ones(points.shape[0], np.int64)
+    renumber[used] = np.arange(used.size)
+    return points[used], renumber[cells]
+
+
+def _fixed_below(points: np.ndarray, z: float) -> np.ndarray:
+    tol = 1e-9 * float(np.linalg.norm(np.ptp(points, axis=0)))
+    return np.flatnonzero(points[:, 2] <= z + tol)
+
+
+def _finish(points, cells, z_fixed: float) -> TetMesh:
+    vol = np.einsum(
+        "ij,ij->i",
+        np.cross(points[cells[:, 1]] - points[cells[:, 0]], points[cells[:, 2]] - points[cells[:, 0]]),
+        points[cells[:, 3]] - points[cells[:, 0]],
+    )
+    cells = np.where((vol < 0)[:, None], cells[:, [0, 2, 1, 3]], cells)
+    check_quality(points, cells, min_quality=0.02)
+    return TetMesh(points=points, cells=cells, base_nodes=_fixed_below(points, z_fixed))
+
+
+def _hook_size(hook: Cantilever, size: float) -> float:
+    """Element size along the hooks' edges: about one P2 element across the hook's section
+    (2.5 undercuts; the mesh still follows its edges exactly), never above ``size``. A full
+    hook of elements the undercut's size would multiply the part's dof several times over."""
+    return min(size, max(2.5 * hook.undercut, hook.flat))
+
+
+# --------------------------------------------------------------------------------------------
+# The presets
+# --------------------------------------------------------------------------------------------
+
+
+def default_rigid(kind: str, c: Mapping, plug: Mapping) -> Plug:
+    """The preset's default rigid part from its ``[connector]`` and ``[plug]`` tables: a block
+    with rounded edges (cantilever: its face ``x = h_tip`` in the plane of the arm's outer face at
+    the tip, so it pushes the hook by the full undercut; clip: exactly ``gap`` wide, centred,
+    pushing both hooks), ``plug.clearance`` above the hook's top."""
+    hook = hook_of(c)
+    if kind == "cantilever":
+        thick = plug["thickness"] or 1.25 * hook.undercut
+        x = hook.h_tip + 0.5 * thick
+    else:
+        thick, x = plug["thickness"] or c["gap"], 0.0
+    half = np.array([thick, plug["width"] or hook.width + 1.0, plug["height"]]) / 2
+    return Plug(half, plug["fillet"], [x, 0.0, hook.z_top + plug["clearance"] + half[2]])
+
+
+def generate(kind: str, c: Mapping, plug: Mapping, mesh_size: float) -> Preset:
+    """The deformable part, default rigid part and default stroke of preset ``kind`` from its
+    ``[connector]`` and ``[plug]`` tables (validated scene values), meshed at ``mesh_size``."""
+    hook = hook_of(c)
+    stroke = latching_stroke(plug["height"], plug["clearance"], hook.z_top - hook.length)
+    rigid = default_rigid(kind, c, plug)
+    if kind == "cantilever":
+        return Preset(mesh_cantilever(hook, mesh_size), rigid, stroke)
+    fine = _hook_size(hook, mesh_size)
+    if kind == "two_hook_clip":
+        points, cells = _gmsh_mesh(
+            clip_section(c), width=hook.width, size=mesh_size, fine=fine, z_fine=hook.length
+        )
+        return Preset(_finish(points, cells, -c["base_thickness"]), rigid, stroke)
+    raise ValueError(f"connector.type = {kind!r}: must be one of {', '.join(PRESETS)}")
