@@ -141,6 +141,21 @@ def _hook_family(d):
     )
 
 
+def _two_hook_clip(d):
+    acc = d["accuracy"]["mu 0.3"]
+    red = acc["reduced_float32"]
+    apgd, pgs = d["solvers"]["APGD"], d["solvers"]["PGS"]
+    rmse = 100 * red["rmse_of_full_peak"]
+    text = (
+        f"two-hook clip, mu 0.3: reduced float32 peak {red['peak_N']:.3g} N, RMSE {rmse:.2f} % of the full "
+        f"model's peak; squeeze: APGD {apgd['steps_at_cap']} / PGS {pgs['steps_at_cap']} steps at the "
+        f"{apgd['iteration_cap']}-iteration cap, {apgd['steps_per_second']:.0f} steps/s"
+    )
+    if "calculix_mu0" in d:
+        text += f"; full mu 0 peak {d['calculix_mu0']['full_float64']['peak_over_reference']:.3f} x CalculiX's"
+    return text
+
+
 def _sdf_scene(d):
     runs = d["runs"]
     n = runs["neural"]
@@ -384,6 +399,12 @@ BENCHMARKS = [
     ),
     Bench("sdf_speed", "SDF query speed: neural against exact mesh", True, _sdf_speed),
     Bench("contact_squeeze", "APGD against PGS on the symmetric squeeze", True, _contact_squeeze),
+    Bench(
+        "two_hook_clip",
+        "two-hook clip preset: reduced vs full vs CalculiX, contact solvers on its squeeze",
+        True,
+        _two_hook_clip,
+    ),
     Bench(
         "contact_solvers",
         "APGD, ADMM and SPG in rollouts of the reduced scene: iterations, cap, step time",
