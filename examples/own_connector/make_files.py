@@ -13,7 +13,7 @@ import trimesh
 
 import jsnap
 from jsnap._geometry.cantilever import mesh_cantilever
-from jsnap._geometry.plug import default_plug
+from jsnap._geometry.presets import default_rigid
 from jsnap._geometry.scene import connector_geometry
 
 here = Path(__file__).parent
@@ -21,7 +21,7 @@ scene = jsnap.load_scene()
 geom = connector_geometry(scene)
 mesh = mesh_cantilever(geom, 0.8)
 trimesh.Trimesh(mesh.points, mesh.boundary_faces()).export(here / "hook.stl")
-plug = default_plug(scene["plug"], geom)
+plug = default_rigid("cantilever", scene["connector"], scene["plug"])
 surface = plug.mesh()
 surface.apply_translation(plug.start)
 surface.export(here / "plug.stl")
