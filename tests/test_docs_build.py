@@ -38,6 +38,7 @@ DOCS = ROOT / "docs"
 PAGES = [
     "guide",
     "own-connector",
+    "gallery",
     "scene-reference",
     "api",
     "architecture",

@@ -59,3 +59,34 @@ def test_own_connector_notebook_runs(tmp_path, monkeypatch):
     assert (tmp_path / "own_connector" / "vtu" / "socket.pvd").is_file()
     assert ns["result"].status() == "ok"
     assert 4.0 < float(np.max(ns["F"])) < 6.5  # the default hook peaks at 5.1 N
+
+
+DESIGN = Path(__file__).parents[1] / "notebooks" / "design_preset.ipynb"
+
+
+@pytest.mark.slow
+def test_design_preset_notebook_runs(tmp_path, monkeypatch):
+    """The two-hook clip preset, redesigned twice: the notebook runs top to bottom (small
+    settings: the full model on a coarse mesh, a fast block) and leaves the three designs' peaks
+    ordered as it says: the thinner arm with the smaller undercut lowers the force and the arms'
+    strain, the stiffer PC raises the force by about the ratio of the moduli."""
+    matplotlib.use("Agg")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("JSNAP_NOTEBOOK_SMALL", "1")
+    nb = json.loads(DESIGN.read_text())
+    code = [c for c in nb["cells"] if c["cell_type"] == "code"]
+    assert all(not c["outputs"] and c["execution_count"] is None for c in code)  # stored cleared
+    ns = {"__name__": "__main__"}
+    for i, cell in enumerate(code):
+        exec(compile("".join(cell["source"]), f"{DESIGN.name}[code cell {i}]", "exec"), ns)
+    assert os.path.getsize("design_preset.png") > 10_000
+    shipped, slim, pc = ns["shipped"], ns["slim"], ns["pc"]
+    forces = [d.peak_force for d in (shipped, slim, pc)]
+    strains = [d.arm.max_principal for d in (shipped, slim, pc)]
+    assert np.all(np.isfinite(forces)) and np.all(np.isfinite(strains))
+    assert forces[1] < forces[0] and forces[1] < forces[2]
+    assert strains[1] < strains[0] and strains[1] < slim.allowable
+    assert abs(forces[2] / forces[1] / (ns["E_PC"] / ns["E_ABS"]) - 1) < 0.03
+    # The shipped clip peaks at 8.8 N (full model, 0.8 mm mesh, 10 mm/s); at the small settings
+    # (1.6 mm, 40 mm/s) at 9.6 N.
+    assert 8.0 < forces[0] < 11.0
