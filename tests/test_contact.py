@@ -649,3 +649,40 @@ def test_shape_errors_name_the_argument():
         solve_apgd(W, q, mu, mask, max_iters=0, tol=TOL)
     with pytest.raises(ValueError, match="gamma0 must be"):
         solve_apgd(W, q, mu, mask, max_iters=10, tol=TOL, gamma0=np.zeros((7, 3)))
+
+
+@pytest.mark.parametrize("n_active", [5, 50, 100])
+def test_solve_on_leading_slots_is_the_whole_buffers(n_active, x64):
+    """A step solves its cone problem on the smallest leading part of the contact buffer that
+    holds every active slot (a quarter, half or all of 128 slots): inactive slots enter only as
+    zero rows and columns of W, so the forces are those of the solve on the whole buffer."""
+    from types import SimpleNamespace
+
+    from jsnap._core.contact import APGD
+    from jsnap._core.step import ContactProblem, _buckets, _solve
+
+    C = 128
+    assert _buckets(C) == (32, 64, 128) and _buckets(64) == (16, 64)
+    W, q, mu, _ = random_problem(seed=n_active, C=C, n_kind="over")
+    active = np.arange(C) < n_active  # the buffer fills from the front (top_k)
+    prob = ContactProblem(
+        W=jnp.asarray(W.reshape(C, 3, C, 3)),
+        shift=jnp.asarray(0.0),
+        q=jnp.asarray(q),
+        mu=jnp.asarray(mu),
+        active=jnp.asarray(active),
+        idx=jnp.arange(C),
+        A=jnp.zeros((C, 3, 1)),
+        R=jnp.broadcast_to(jnp.eye(3), (C, 3, 3)),
+        points=jnp.zeros((C, 3)),
+        gamma0=jnp.zeros((C, 3)),
+        overflow=jnp.asarray(0),
+    )
+    model = SimpleNamespace(contact=SimpleNamespace(solver=APGD(max_iters=20000, tol=1e-12)))
+    part, Gamma = _solve(model, prob)
+    whole, Gamma_whole = _solve(model, prob, whole=True)
+    assert bool(part.converged) and bool(whole.converged)
+    scale = float(jnp.abs(Gamma_whole).max())
+    assert scale > 0
+    np.testing.assert_allclose(np.asarray(Gamma), np.asarray(Gamma_whole), atol=1e-7 * scale)
+    assert not np.any(np.asarray(Gamma)[~active])
