@@ -36,6 +36,7 @@ from _common import code_version, scan_timing
 
 import jsnap
 from jsnap._build.strain import _nodal_displacement
+from jsnap._geometry.mesh import TetMesh
 from jsnap._geometry.presets import PRESETS
 from jsnap._geometry.scene import default_scene_path
 
@@ -73,16 +74,6 @@ def scene_of(preset: str):
     if preset != "cantilever":
         path = path.parent / f"{preset}.toml"
     return jsnap.load_scene(path), path
-
-
-def boundary_faces(cells4: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The faces of a tet mesh that belong to one tet only: ``(faces (F, 3), their tet (F,))``."""
-    local = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
-    faces = cells4[:, local].reshape(-1, 3)
-    owner = np.repeat(np.arange(cells4.shape[0]), 4)
-    _, inverse, counts = np.unique(np.sort(faces, axis=1), axis=0, return_inverse=True, return_counts=True)
-    once = counts[inverse.reshape(-1)] == 1
-    return faces[once], owner[once]
 
 
 def magnification(u: np.ndarray, nodes: np.ndarray) -> float:
@@ -225,7 +216,7 @@ def plot_preset(preset: str, row: dict, fig_data: dict, path: Path) -> None:
     from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 
     nodes, u = fig_data["nodes"], fig_data["u"]
-    faces, owner = boundary_faces(fig_data["cells4"])
+    faces, owner = TetMesh(nodes, fig_data["cells4"], np.zeros(0, np.int64)).boundary_faces(owners=True)
     scale = magnification(u, nodes)
     xyz = nodes + scale * u
     verts = xyz[faces]

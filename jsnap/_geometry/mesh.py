@@ -136,11 +136,13 @@ class TetMesh:
         """(m,) element volumes, mm³."""
         return signed_volumes(self.points, self.cells)
 
-    def boundary_faces(self) -> np.ndarray:
-        """(f, 3) int64 boundary triangles, ordered so the right-hand normal points outwards."""
+    def boundary_faces(self, owners: bool = False):
+        """(f, 3) int64 boundary triangles, ordered so the right-hand normal points outwards;
+        with ``owners``, also the (f,) tet each belongs to."""
         faces = self.cells[:, TET_FACES].reshape(-1, 3)
         _, first, counts = np.unique(np.sort(faces, axis=1), axis=0, return_index=True, return_counts=True)
-        return faces[np.sort(first[counts == 1])]
+        at = np.sort(first[counts == 1])
+        return (faces[at], at // len(TET_FACES)) if owners else faces[at]
 
     def boundary_face_areas(self) -> np.ndarray:
         """(f,) areas of :meth:`boundary_faces`, mm²."""
