@@ -404,7 +404,7 @@ def surface_samples(mesh: TetMesh, lo, hi, direction, spacing: float, width_spac
             np.zeros(0, int),
         )
     X, N, C, S, G, O = (np.array(a) for a in (X, N, C, S, G, O))
-    keep = _dedupe(X, C, 1e-6 * scale)
+    keep = _dedupe(X, C, N, d, 1e-6 * scale)
     keep = keep[np.all((X[keep] >= lo) & (X[keep] <= hi), axis=1)]
     _, G = np.unique(G[keep], return_inverse=True)
     return X[keep], N[keep], C[keep], S[keep], G, O[keep]
@@ -448,10 +448,23 @@ def _on_patch_step(P2, u0: float, v0: float, d, room: float, length: float, tol:
     return 0.0
 
 
-def _dedupe(X: np.ndarray, corner: np.ndarray, tol: float) -> np.ndarray:
-    """Indices of points kept when several coincide (within ``tol``): a corner one first."""
+def _dedupe(X: np.ndarray, corner: np.ndarray, normals: np.ndarray, direction, tol: float) -> np.ndarray:
+    """Indices of points kept when several coincide (within ``tol``): a corner one first and,
+    of several corners (a vertex, where three or more faces meet), the one whose edge runs most
+    across the motion ``direction``.
+
+    A corner carries the normal cone of two faces only. At a vertex the rigid part moving along
+    ``direction`` meets it on the edge it sweeps across (a catch's ramp-to-land edge), not on an
+    edge it slides along (the land's edge with the part's side face): that face's lines along
+    the edge sample it already, and its cone (side face, ramp) would tilt a rigid face's push on
+    the vertex into the ramp's normal.
+    """
     key = np.round(X / tol).astype(np.int64)
-    order = np.lexsort((~corner, *key.T[::-1]))
+    edge = np.cross(normals[:, 0], normals[:, 1])
+    size = np.linalg.norm(edge, axis=1)
+    d = np.asarray(direction, np.float64) / np.linalg.norm(direction)
+    along = np.where(size > 1e-12, np.abs(edge @ d) / np.where(size > 1e-12, size, 1.0), 1.0)
+    order = np.lexsort((np.round(along, 9), ~corner, *key.T[::-1]))
     k = key[order]
     new = np.ones(len(order), bool)
     new[1:] = np.any(k[1:] != k[:-1], axis=1)
