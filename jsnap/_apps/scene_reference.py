@@ -61,6 +61,18 @@ _CONNECTORS = {
     "a block exactly `gap` wide pushed down between the hooks: both hooks are squeezed apart at "
     "once. Meshed with gmsh at `solver.mesh_size`, along the hooks' edges at the smaller of that "
     "and 2.5 undercuts.",
+    "cable_latch": "The flexible latch of a cable plug (a LAN plug), on the plug: the latch arm "
+    "spans x in [0, thickness] and z from its free end z = 0 up to its root z = length, where a "
+    "bridge 2 thickness tall joins it over a `gap` to the plug body x in "
+    "[-gap - body_thickness, -gap], z in [0, length + 2 thickness]; latch and body are `width` "
+    "wide. The catch (the cantilever's hook section: undercut, lead and return angles, flat) stands "
+    "on the arm's outer face, its retention face `catch_position` below the root. The body's back "
+    "face x = -(gap + body_thickness) is fixed (the part the robot holds). The rigid part is the "
+    "jack's lip, a block whose inner face lies in the plane of the arm's outer face, coming down "
+    "along -z from above the catch: it pushes the catch in by the undercut, passes it, and the "
+    "latch springs back behind it (the plug is moved into the jack; jsnap moves the jack relative "
+    "to the plug). The latch's free end must not reach the body: `gap` must exceed its "
+    "beam-theory swing. Meshed with gmsh like the clip, finer along the catch's edges.",
 }
 
 _TYPES = {float: "number", int: "integer", bool: "boolean", str: "string", list: "array"}

@@ -59,21 +59,32 @@ def check_out_dir(out) -> Path:
 
 # Presets made of cantilever hooks with a rigid root, and how many hooks the rigid part deflects
 # at once (the design guide's beam formulas hold per hook).
-_HOOKS = {"cantilever": 1, "two_hook_clip": 2}
+_HOOKS = {"cantilever": 1, "two_hook_clip": 2, "cable_latch": 1}
+
+
+def _lever(c) -> float:
+    """The design guide's cantilever length, mm: the arm's length for the hooks; for the latch,
+    loaded part-way along its arm, the distance from its root to the top of the catch's flat
+    (where the lip first pushes it in by the whole undercut)."""
+    if c["type"] == "cable_latch":
+        from jsnap._geometry.presets import hook_of
+
+        return c["length"] - hook_of(c).z_flat_end
+    return c["length"]
 
 
 def design_guide_strain(scene) -> float | None:
     """Snap-fit design-guide strain at the root when the hook is deflected by the undercut:
     eps = 1.5 h y / L^2 (constant arm) or h y / (1.09 L^2) (arm tapered to h/2), dimensionless
-    (None for a part from a file).
+    (None for a part from a file). For the cable latch L is the catch's distance from the root.
 
-    Beam theory for a tip deflection y of a cantilever of length L and root thickness h: no
-    stress concentration at the root, the deflection applied at z = L.
+    Beam theory for a deflection y of a cantilever of length L and root thickness h at its
+    load: no stress concentration at the root, the root clamped.
     """
     c = scene["connector"]
     if not c or c["type"] not in _HOOKS:
         return None
-    L, h, y = c["length"], c["thickness"], c["undercut"]
+    L, h, y = _lever(c), c["thickness"], c["undercut"]
     h_tip = c.get("tip_thickness") or h
     return y * h / (1.09 * L**2) if abs(h_tip - h / 2) < 1e-9 else 1.5 * h * y / L**2
 
@@ -88,7 +99,7 @@ def design_guide_force(scene) -> float | None:
     c, m = scene["connector"], scene["material"]
     if not c or c["type"] not in _HOOKS:
         return None
-    L, h, b = c["length"], c["thickness"], c["width"]
+    L, h, b = _lever(c), c["thickness"], c["width"]
     eps = design_guide_strain(scene)
     P = b * h**2 * m["youngs_modulus"] * eps / (6 * L)
     mu, ta = scene["contact"]["friction"], math.tan(math.radians(c["lead_angle"]))

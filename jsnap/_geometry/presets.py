@@ -8,11 +8,18 @@ apart: it keeps its own contact sampling along its section (``jsnap._build.sampl
 * ``two_hook_clip`` — two cantilevers of that section, mirror images about ``x = 0`` with their
   hooks pointing inwards, their inner faces ``gap`` apart, rising from ``z = 0`` out of a base
   block ``base_thickness`` thick whose bottom face is fixed; the rigid part is a block exactly
-  ``gap`` wide that squeezes between the hooks.
+  ``gap`` wide that squeezes between the hooks;
+* ``cable_latch`` — the flexible latch of a cable plug (the LAN plug of the paper's Fig. 1): an
+  arm hanging from a bridge at the top of the plug body, ``gap`` away from it, with a catch
+  (the cantilever's hook section) ``catch_position`` below its root; the plug body's back face is
+  fixed (the part the robot holds) and the jack's lip, a rigid block, comes down along the
+  arm from its root: it pushes the catch in by the undercut and passes it, the latch springs
+  back behind it. The contact moves away from the root as the lip travels, so the arm grows
+  softer under it (a cantilever loaded at a travelling point, not at its tip).
 
-The clip is tet-meshed with gmsh (the mesher the parts from files use) from its exact CAD solid,
-the section polygon extruded over the width, finer along the hooks' edges (see
-:func:`_hook_size`). Units: mm, degrees.
+The clip and the latch are tet-meshed with gmsh (the mesher the parts from files use) from its exact CAD solid,
+the section polygon extruded over the width, finer along the hooks' (catch's) edges
+(see :func:`_hook_size`). Units: mm, degrees.
 """
 
 from __future__ import annotations
@@ -27,9 +34,19 @@ from jsnap._geometry.mesh import TetMesh, check_quality
 from jsnap._geometry.motion import latching_stroke
 from jsnap._geometry.plug import Plug
 
-__all__ = ["PRESETS", "Preset", "clip_section", "connector_features", "default_rigid", "generate", "hook_of"]
+__all__ = [
+    "PRESETS",
+    "Preset",
+    "clip_section",
+    "connector_features",
+    "default_rigid",
+    "generate",
+    "hook_of",
+    "latch_section",
+    "latch_tip_deflection",
+]
 
-PRESETS = ("cantilever", "two_hook_clip")  # the keys of jsnap._geometry.scene.CONNECTORS
+PRESETS = ("cantilever", "two_hook_clip", "cable_latch")  # the keys of jsnap._geometry.scene.CONNECTORS
 
 
 @dataclass(frozen=True, eq=False)
@@ -50,9 +67,16 @@ class Preset:
 
 def hook_of(c: Mapping) -> Cantilever:
     """The hook section of a preset's ``[connector]`` table (the cantilever's arm, each of the
-    clip's arms). Raises ``ValueError`` naming the key."""
+    clip's arms; the latch's catch with the arm below it, its ``length`` the height of the
+    retention face above the latch's free end). Raises ``ValueError`` naming the key."""
+    if "catch_position" in c:
+        if not 0 < c["catch_position"] < c["length"]:
+            raise ValueError(
+                f"connector.catch_position = {c['catch_position']!r}: the catch's retention face must lie "
+                f"on the arm, between its root and its free end: in (0, length) = (0, {c['length']:g}) mm"
+            )
     return Cantilever(
-        length=c["length"],
+        length=c["length"] - c["catch_position"] if "catch_position" in c else c["length"],
         thickness=c["thickness"],
         width=c["width"],
         undercut=c["undercut"],
@@ -82,6 +106,21 @@ def connector_features(kind: str, c: Mapping) -> dict[str, float]:
             )
         # The hooks' lips are meshed finer on their own (see generate).
         return {"thickness": c["thickness"], "width": c["width"], "base_thickness": c["base_thickness"]}
+    if kind == "cable_latch":
+        if not hook.z_top < c["length"]:
+            raise ValueError(
+                f"connector.catch_position = {c['catch_position']!r}: the catch is "
+                f"{hook.z_top - hook.length:g} mm tall (retention face, flat and lead ramp) and must end below "
+                f"the arm's root: catch_position must be more than {hook.z_top - hook.length:g} mm"
+            )
+        tip = latch_tip_deflection(c)
+        if not c["gap"] > tip:
+            raise ValueError(
+                f"connector.gap = {c['gap']!r}: pushed in by the undercut at the catch, the latch's free end "
+                f"moves ~{tip:.3g} mm towards the plug body (beam theory) and would hit it, a contact jsnap "
+                f"does not model; make the gap more than {tip:.3g} mm (or the catch nearer the free end)"
+            )
+        return {"thickness": c["thickness"], "width": c["width"], "gap": c["gap"]}
     raise ValueError(f"connector.type = {kind!r}: must be one of {', '.join(PRESETS)}")
 
 
@@ -110,10 +149,35 @@ def clip_section(c: Mapping) -> np.ndarray:
     return np.concatenate([[[-X, -tb], [X, -tb], [X, 0.0]], right, left, [[-X, 0.0]]])
 
 
-def _gmsh_mesh(section: np.ndarray, *, width: float, size: float, fine: float, z_fine: float) -> tuple:
+def latch_section(c: Mapping) -> np.ndarray:
+    """(12, 2) section polygon (x, z) of the cable latch, counter-clockwise, mm: the arm
+    ``x in [0, h]`` from its free end ``z = 0`` up to its root ``z = length``, the catch on its
+    outer face, a bridge ``2 h`` tall over the gap to the plug body
+    ``x in [-gap - body_thickness, -gap]``, ``z in [0, length + 2 h]``."""
+    hook = hook_of(c)
+    h, L, g, T = c["thickness"], c["length"], c["gap"], c["body_thickness"]
+    top = L + 2.0 * h
+    catch = hook.section()[2:6]  # (h, z_r) (h + y_u, z_ret) (h + y_u, z_flat_end) (h, z_top)
+    return np.concatenate(
+        [[[-g - T, 0.0], [-g, 0.0], [-g, L], [0.0, L], [0.0, 0.0], [h, 0.0]], catch, [[h, top], [-g - T, top]]]
+    )
+
+
+def latch_tip_deflection(c: Mapping) -> float:
+    """How far the latch's free end moves when the catch is pushed in by the undercut, mm:
+    a cantilever of length ``length`` loaded at distance ``l`` from its root (the top of the
+    catch's flat), ``y (3 L - l) / (2 l)`` for the deflection ``y`` there."""
+    hook = hook_of(c)
+    L = c["length"]
+    arm = L - hook.z_flat_end
+    return c["undercut"] * (3.0 * L - arm) / (2.0 * arm)
+
+
+def _gmsh_mesh(section: np.ndarray, *, width: float, size: float, fine: float, fine_box) -> tuple:
     """Tetrahedra (points (n, 3), cells (m, 4)) of the section polygon (x, z) extruded over
-    ``y in [-width/2, width/2]``; elements of ``size``, ``fine`` on the edges at
-    ``z >= z_fine`` (the hooks), growing to ``size`` within ``2 size`` of them."""
+    ``y in [-width/2, width/2]``; elements of ``size``, ``fine`` on the edges that lie in
+    ``fine_box`` = ((x0, z0), (x1, z1)) (the hooks), growing to ``size`` within ``2 size`` of
+    them."""
     import gmsh
 
     initialised = gmsh.isInitialized()
@@ -130,7 +194,8 @@ def _gmsh_mesh(section: np.ndarray, *, width: float, size: float, fine: float, z
         occ.synchronize()
         big = 10.0 * float(np.max(np.abs(section))) + 10.0
         eps = 1e-6 * big
-        hooks = gmsh.model.getEntitiesInBoundingBox(-big, -big, z_fine - eps, big, big, big, dim=1)
+        (x0, z0), (x1, z1) = np.clip(np.asarray(fine_box, np.float64), -big, big)
+        hooks = gmsh.model.getEntitiesInBoundingBox(x0 - eps, -big, z0 - eps, x1 + eps, big, z1 + eps, dim=1)
         field = gmsh.model.mesh.field
         dist = field.add("Distance")
         field.setNumbers(dist, "CurvesList", [tag for _, tag in hooks])
@@ -162,12 +227,13 @@ def _gmsh_mesh(section: np.ndarray, *, width: float, size: float, fine: float, z
     return points[used], renumber[cells]
 
 
-def _fixed_below(points: np.ndarray, z: float) -> np.ndarray:
+def _fixed_below(points: np.ndarray, value: float, axis: int) -> np.ndarray:
     tol = 1e-9 * float(np.linalg.norm(np.ptp(points, axis=0)))
-    return np.flatnonzero(points[:, 2] <= z + tol)
+    return np.flatnonzero(points[:, axis] <= value + tol)
 
 
-def _finish(points, cells, z_fixed: float) -> TetMesh:
+def _finish(points, cells, fixed: float, axis: int = 2) -> TetMesh:
+    """The mesh with positive volumes, its fixed region the nodes at ``points[:, axis] <= fixed``."""
     vol = np.einsum(
         "ij,ij->i",
         np.cross(points[cells[:, 1]] - points[cells[:, 0]], points[cells[:, 2]] - points[cells[:, 0]]),
@@ -175,7 +241,7 @@ def _finish(points, cells, z_fixed: float) -> TetMesh:
     )
     cells = np.where((vol < 0)[:, None], cells[:, [0, 2, 1, 3]], cells)
     check_quality(points, cells, min_quality=0.02)
-    return TetMesh(points=points, cells=cells, base_nodes=_fixed_below(points, z_fixed))
+    return TetMesh(points=points, cells=cells, base_nodes=_fixed_below(points, fixed, axis))
 
 
 def _hook_size(hook: Cantilever, size: float) -> float:
@@ -194,9 +260,10 @@ def default_rigid(kind: str, c: Mapping, plug: Mapping) -> Plug:
     """The preset's default rigid part from its ``[connector]`` and ``[plug]`` tables: a block
     with rounded edges (cantilever: its face ``x = h_tip`` in the plane of the arm's outer face at
     the tip, so it pushes the hook by the full undercut; clip: exactly ``gap`` wide, centred,
-    pushing both hooks), ``plug.clearance`` above the hook's top."""
+    pushing both hooks; latch: like the cantilever, the jack's lip with its face in the plane of
+    the arm's outer face), ``plug.clearance`` above the hook's (catch's) top."""
     hook = hook_of(c)
-    if kind == "cantilever":
+    if kind in ("cantilever", "cable_latch"):
         thick = plug["thickness"] or 1.25 * hook.undercut
         x = hook.h_tip + 0.5 * thick
     else:
@@ -215,8 +282,18 @@ def generate(kind: str, c: Mapping, plug: Mapping, mesh_size: float) -> Preset:
         return Preset(mesh_cantilever(hook, mesh_size), rigid, stroke)
     fine = _hook_size(hook, mesh_size)
     if kind == "two_hook_clip":
+        big = np.inf
         points, cells = _gmsh_mesh(
-            clip_section(c), width=hook.width, size=mesh_size, fine=fine, z_fine=hook.length
+            clip_section(c),
+            width=hook.width,
+            size=mesh_size,
+            fine=fine,
+            fine_box=((-big, hook.length), (big, big)),
         )
         return Preset(_finish(points, cells, -c["base_thickness"]), rigid, stroke)
+    if kind == "cable_latch":
+        # Finer on the catch's edges only (the arm's outer face continues above and below it).
+        box = ((hook.thickness, hook.length), (np.inf, hook.z_top))
+        points, cells = _gmsh_mesh(latch_section(c), width=hook.width, size=mesh_size, fine=fine, fine_box=box)
+        return Preset(_finish(points, cells, -c["gap"] - c["body_thickness"], axis=0), rigid, stroke)
     raise ValueError(f"connector.type = {kind!r}: must be one of {', '.join(PRESETS)}")

@@ -233,6 +233,42 @@ CONNECTORS: dict[str, dict[str, Key]] = {
         },
         "length thickness width undercut lead_angle return_angle flat gap base_thickness base_margin",
     ),
+    "cable_latch": _ordered(
+        {
+            **_hook_keys("latch", "x"),
+            "length": _pos("mm", 10.0, "L, latch arm length from its free end (z = 0) up to its root (z = L)"),
+            "thickness": _pos("mm", 0.8, "h, latch arm thickness (x, the bending direction)"),
+            "width": _pos("mm", 3.2, "b, width of the latch and the plug body (y)"),
+            "catch_position": _pos(
+                "mm", 6.0, "distance from the latch's root down to the catch's retention face"
+            ),
+            "undercut": _pos("mm", 0.6, "y_u, how far the catch protrudes beyond the arm's outer face (x)"),
+            "lead_angle": Key(
+                float,
+                30.0,
+                "deg",
+                0.0,
+                90.0,
+                True,
+                True,
+                doc="alpha, the catch's lead ramp to the motion",
+            ),
+            "return_angle": Key(
+                float,
+                90.0,
+                "deg",
+                0.0,
+                90.0,
+                True,
+                False,
+                doc="alpha', the catch's retention face (90 = square: the plug stays in until pressed)",
+            ),
+            "flat": _nonneg("mm", 0.3, "the catch's land between its retention face and lead ramp"),
+            "gap": _pos("mm", 1.6, "clearance between the arm's inner face and the plug body (x)"),
+            "body_thickness": _pos("mm", 3.0, "the plug body's thickness (x); its back face is fixed"),
+        },
+        "length thickness width catch_position undercut lead_angle return_angle flat gap body_thickness",
+    ),
 }
 
 SCHEMA: dict[str, dict[str, Key]] = {
@@ -240,8 +276,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "type": Key(
             str,
             choices=tuple(CONNECTORS),
-            doc="connector preset: the canonical cantilever hook, or two hooks facing each other on a "
-            "base block (two_hook_clip)",
+            doc="connector preset: the canonical cantilever hook, two hooks facing each other on a "
+            "base block (two_hook_clip), or a cable plug's latch (cable_latch)",
         ),
     },
     "part": {
