@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import code_version, load_scene, scan_timing
+from _common import calculix_row, code_version, curve_stats, load_scene, scan_timing
 
 import jsnap
 from jsnap._geometry.scene import default_scene_path
@@ -49,47 +49,6 @@ SOLVERS = {
 # The full model's contact: APGD to the scene's tolerance, with room to get there.
 FULL_CONTACT = {"contact.solver": "apgd", "contact.iterations": 5000}
 LONG_CAP = 5000
-
-
-def curve_stats(F, travel, ref_F):
-    """Peak, its travel, and the RMS difference from ``ref_F`` in % of its peak over the whole
-    motion and over the rise (up to ``ref_F``'s peak: after the snap the hooks ring against the
-    block's sides, which are exactly where their inner faces rest)."""
-    k, rise = int(np.argmax(F)), int(np.argmax(ref_F)) + 1
-    rmse = float(np.sqrt(np.mean((F - ref_F) ** 2)) / ref_F.max())
-    rmse_rise = float(np.sqrt(np.mean((F[:rise] - ref_F[:rise]) ** 2)) / ref_F.max())
-    return {
-        "peak_N": float(F[k]),
-        "travel_at_peak_mm": float(travel[k]),
-        "rmse_of_full_peak": rmse,
-        "rmse_rise_of_full_peak": rmse_rise,
-    }
-
-
-def calculix_row(path, travel, models):
-    """Each model's peak over CalculiX's and their RMS difference in % of CalculiX's peak, over
-    the travel the CalculiX curve covers and over its rise (up to 0.05 mm before its peak: the
-    snap's steep drop, a few hundredths of a mm earlier or later, dominates the whole)."""
-    d = np.genfromtxt(path, delimiter=",", names=True)
-    ref_travel, ref_F = d["plug_travel_mm"], d["insertion_force_N"]
-    window = travel <= ref_travel.max()
-    row = {
-        "reference": str(path.relative_to(Path(jsnap.__file__).parent)),
-        "peak_N": float(ref_F.max()),
-        "travel_at_peak_mm": float(ref_travel[np.argmax(ref_F)]),
-        "travel_covered_mm": float(ref_travel.max()),
-    }
-    rise = travel <= ref_travel[np.argmax(ref_F)] - 0.05
-    for name, F in models.items():
-        interp = np.interp(travel, ref_travel, ref_F)
-        row[name] = {
-            "peak_over_reference": float(F[window].max() / ref_F.max()),
-            "rms_difference_of_reference_peak": float(
-                np.sqrt(np.mean((F[window] - interp[window]) ** 2)) / ref_F.max()
-            ),
-            "rms_rise_of_reference_peak": float(np.sqrt(np.mean((F[rise] - interp[rise]) ** 2)) / ref_F.max()),
-        }
-    return row
 
 
 def solver_run(scene, runs):

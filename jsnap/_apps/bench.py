@@ -159,6 +159,26 @@ def _two_hook_clip(d):
     return text
 
 
+_LATCH_FACTORS = (("f_3d_beam", "beam theory"), ("f_root", "root gives way"), ("f_angle", "ramp turned"))
+
+
+def _cable_latch(d):
+    acc = d["accuracy"]["mu 0.3"]
+    red, guide = acc["reduced_float32"], acc["design_guide"]
+    rate = d["speed"]["reduced_float32"]["steps_per_second"]
+    rmse = 100 * red["rmse_of_full_peak"]
+    factors = " x".join(f"{1 / guide[k]:.2f} ({what})" for k, what in _LATCH_FACTORS)
+    text = (
+        f"cable latch, mu 0.3: reduced float32 peak {red['peak_N']:.3g} N, RMSE {rmse:.2f} % of the full "
+        f"model's peak, {rate:.0f} steps/s; design guide {guide['guide_mating_force_N']:.2f} N "
+        f"= full x{factors}"
+    )
+    ccx = acc.get("calculix")
+    if ccx:
+        text += f"; full peak {ccx['full_float64']['peak_over_reference']:.3f} x CalculiX's"
+    return text
+
+
 def _gallery(d):
     parts = []
     for name, r in d["presets"].items():
@@ -420,6 +440,12 @@ BENCHMARKS = [
         "two-hook clip preset: reduced vs full vs CalculiX, contact solvers on its squeeze",
         True,
         _two_hook_clip,
+    ),
+    Bench(
+        "cable_latch",
+        "cable latch preset: reduced vs full vs CalculiX, the design guide's gap, speed side by side",
+        False,
+        _cable_latch,
     ),
     Bench(
         "gallery",

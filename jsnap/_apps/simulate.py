@@ -187,12 +187,24 @@ def write_forces_csv(res, path: Path) -> Path:
     return path
 
 
-def write_series(model, res, out: Path, arm_length: float | None, frames: int = 100):
+def arm_box(connector) -> tuple[float, float] | None:
+    """``(x_max, z_max)`` of the preset's bending arm, mm: its elements are those with every
+    vertex at ``z <= z_max`` and ``x <= x_max`` (below the hook, or for the cable latch below its
+    root and inside its outer face, without the catch); None for a part from a file."""
+    if not connector:
+        return None
+    if connector["type"] == "cable_latch":
+        return connector["thickness"], connector["length"]
+    return math.inf, connector["length"]
+
+
+def write_series(model, res, out: Path, arm: tuple[float, float] | float | None, frames: int = 100):
     """The strain of every step and the deformed part at about ``frames`` times as a ParaView
     series (``vtu/socket.pvd``, with each element's largest principal strain and von Mises
     stress as cell data). Returns ``(pvd path, {"part": PeakStrain, "arm": PeakStrain})``:
     the peaks of the whole run over every element and over the arm's (every vertex at
-    ``z <= arm_length``, mm; no "arm" for ``arm_length = None``, a part from a file)."""
+    ``x <= x_max`` and ``z <= z_max`` for ``arm = (x_max, z_max)`` mm, see :func:`arm_box`; a
+    number is ``z_max``; no "arm" for ``arm = None``, a part from a file)."""
     from jsnap._build.strain import scan
     from jsnap._geometry.mesh import write_vtu_series
 
@@ -201,8 +213,11 @@ def write_series(model, res, out: Path, arm_length: float | None, frames: int = 
     E, nu = float(model.params.E), float(model.params.nu)
     nodes, cells = np.asarray(model.mesh.nodes), np.asarray(model.mesh.cells)
     regions = {"part": None}
-    if arm_length is not None:
-        regions["arm"] = np.all(nodes[cells[:, :4], 2] <= arm_length * (1 + 1e-12), axis=1)
+    if arm is not None:
+        x_max, z_max = (math.inf, arm) if np.isscalar(arm) else arm
+        vert = nodes[cells[:, :4]]
+        tol = 1e-12 * float(np.linalg.norm(np.ptp(nodes, axis=0)))
+        regions["arm"] = np.all((vert[..., 2] <= z_max + tol) & (vert[..., 0] <= x_max + tol), axis=1)
     t = np.asarray(res.t, dtype=np.float64)
     peaks, kept = scan(model, x, t, E, nu, keep=keep, regions=regions)
     cell_data = {"max_principal_strain": kept["max_principal"], "von_mises_stress_MPa": kept["von_mises"]}
@@ -281,7 +296,7 @@ def simulate(args) -> int:
     title = f"jsnap: {name}, {model.method} {model.element}, {model.n_dof} dof, dt = {model.dt * 1e3:g} ms"
     png = plot_forces(res, out, guide, title)
     t3 = time.perf_counter()
-    pvd, peaks = write_series(model, res, out, scene["connector"].get("length"))
+    pvd, peaks = write_series(model, res, out, arm_box(scene["connector"]))
     t_strain = time.perf_counter() - t3
     warnings = []
     residual = np.asarray(res.residual)
