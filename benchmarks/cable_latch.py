@@ -13,9 +13,10 @@ model, both against CalculiX and the design guide, and their speed side by side.
    the full model's peak force and the arm's peak strain, the gap split into measured factors:
    P against the lateral force while the lip's face holds the catch in by the whole undercut
    (on the land), for the latch with its root clamped (every node at z >= length fixed: beam
-   theory against 3D FEM and the catch's own compliance) and as shipped (the bridge and the
-   plug body give way); and the peak over that lateral force against (mu + tan a) /
-   (1 - mu tan a) (the ramp meets the lip turned by the arm's slope).
+   theory against 3D FEM and the catch's own compliance: f_3d_beam) and as shipped (the bridge
+   and the plug body give way: f_root); and the peak over that lateral force against
+   (mu + tan a) / (1 - mu tan a) (f_ramp: the ramp meets the lip turned by the arm's slope,
+   shallower, and the ramp's axial force acts off the arm's axis).
 3. Speed: steps/s of the compiled rollout (median of the timed calls) of the shipped reduced
    model and of the full model (float32 and float64), in one process, with the load average.
 
@@ -123,7 +124,7 @@ def guide_gap(scene, full_model, full) -> dict:
         "shipped_peak_N": W_shipped,
         "f_3d_beam": P_clamped / P,
         "f_root": P_shipped / P_clamped,
-        "f_angle": W_shipped / P_shipped / g,
+        "f_ramp": W_shipped / P_shipped / g,
         "youngs_modulus_MPa": m["youngs_modulus"],
     }
 

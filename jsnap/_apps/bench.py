@@ -159,7 +159,7 @@ def _two_hook_clip(d):
     return text
 
 
-_LATCH_FACTORS = (("f_3d_beam", "beam theory"), ("f_root", "root gives way"), ("f_angle", "ramp turned"))
+_LATCH_FACTORS = (("f_3d_beam", "beam theory"), ("f_root", "root gives way"), ("f_ramp", "ramp turned"))
 
 
 def _cable_latch(d):
