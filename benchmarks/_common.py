@@ -154,3 +154,19 @@ def calculix_row(path, travel, models):
             "rms_rise_of_reference_peak": float(np.sqrt(np.mean((F[rise] - interp[rise]) ** 2)) / ref_F.max()),
         }
     return row
+
+
+def plot_curves(ax, curves, refs) -> dict:
+    """On ``ax``: for each friction ``mu`` of ``curves`` (mu -> (travel, full, reduced)), the
+    full model's insertion force, the reduced model's (dashed) and the CalculiX curve at
+    ``refs[mu]`` (dots, where the file exists), in one colour per mu. Returns mu -> colour."""
+    colours = {}
+    for mu, (travel, Ff, Fr) in curves.items():
+        line = ax.plot(travel, Ff, label=f"full float64, mu {mu:g}")[0]
+        colours[mu] = line.get_color()
+        ax.plot(travel, Fr, "--", color=colours[mu], label=f"reduced float32 (shipped), mu {mu:g}")
+        if refs[mu].is_file():
+            d = np.genfromtxt(refs[mu], delimiter=",", names=True)
+            label = f"CalculiX, mu {mu:g}"
+            ax.plot(d["plug_travel_mm"], d["insertion_force_N"], ".", color=colours[mu], ms=3, label=label)
+    return colours

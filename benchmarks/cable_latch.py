@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import calculix_row, code_version, curve_stats, load_scene, scan_timing
+from _common import calculix_row, code_version, curve_stats, load_scene, plot_curves, scan_timing
 
 import jsnap
 from jsnap._apps.simulate import arm_box, design_guide_force, design_guide_strain
@@ -201,21 +201,10 @@ def plot(out, curves):
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(1, 2, figsize=(13, 4.8), gridspec_kw={"width_ratios": [2, 1]})
-    for mu, (travel, Ff, Fr) in curves.items():
-        line = ax[0].plot(travel, Ff, label=f"full float64, mu {mu:g}")[0]
-        ax[0].plot(travel, Fr, "--", color=line.get_color(), label=f"reduced float32 (shipped), mu {mu:g}")
-        if REFS[mu].is_file():
-            d = np.genfromtxt(REFS[mu], delimiter=",", names=True)
-            ax[0].plot(
-                d["plug_travel_mm"],
-                d["insertion_force_N"],
-                ".",
-                color=line.get_color(),
-                ms=3,
-                label=f"CalculiX, mu {mu:g}",
-            )
+    colours = plot_curves(ax[0], curves, REFS)
+    for mu, colour in colours.items():
         guide = out["accuracy"][f"mu {mu:g}"]["design_guide"]["guide_mating_force_N"]
-        ax[0].axhline(guide, color=line.get_color(), ls=":", lw=0.8, label=f"design guide, mu {mu:g}")
+        ax[0].axhline(guide, color=colour, ls=":", lw=0.8, label=f"design guide, mu {mu:g}")
     ax[0].axhline(0, color="0.6", lw=0.5)
     ax[0].set(
         xlabel="travel of the lip (mm)", ylabel="insertion force (N)", title="cable latch: insertion force"

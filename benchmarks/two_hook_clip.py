@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import calculix_row, code_version, curve_stats, load_scene, scan_timing
+from _common import calculix_row, code_version, curve_stats, load_scene, plot_curves, scan_timing
 
 import jsnap
 from jsnap._geometry.scene import default_scene_path
@@ -138,19 +138,7 @@ def plot(out, curves):
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(1, 3, figsize=(17, 4.8))
-    for mu, (travel, Ff, Fr) in curves.items():
-        line = ax[0].plot(travel, Ff, label=f"full float64, mu {mu:g}")[0]
-        ax[0].plot(travel, Fr, "--", color=line.get_color(), label=f"reduced float32 (shipped), mu {mu:g}")
-        if REFS[mu].is_file():
-            d = np.genfromtxt(REFS[mu], delimiter=",", names=True)
-            ax[0].plot(
-                d["plug_travel_mm"],
-                d["insertion_force_N"],
-                ".",
-                color=line.get_color(),
-                ms=3,
-                label=f"CalculiX, mu {mu:g}",
-            )
+    plot_curves(ax[0], curves, REFS)
     ax[0].set(xlabel="travel (mm)", ylabel="insertion force (N)", title="two-hook clip: insertion force")
     ax[0].legend(fontsize=7)
     for name, s in out["solvers"].items():
