@@ -22,10 +22,14 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from pathlib import Path
 
 import gmsh
 import numpy as np
+
+sys.path.append(str(Path(__file__).resolve().parents[1]))  # benchmarks/calculix: ccx_common
+from ccx_common import extrude, face_nodes, faces_on, hex_volume_sign, mesh_section, write_ids, y_layers
 
 # ---- named dimensions (mm), jsnap's two_hook_clip defaults ---------------------------------
 L = 10.0  # arm length to the retention face
@@ -74,77 +78,6 @@ LEVELS = {
 }
 
 
-def _mesh_section(build, sizes):
-    """Mesh a 2-D section with quadrilaterals. `build(geo)` adds points/curves/surface to gmsh's
-    geo kernel and returns {name: [curve tags]} and {curve tag: number of segments or None};
-    `sizes` is a list of (curve names, size near them, distance of the growth, size far away).
-    Returns nodes (n, 2) in (x, z), quads (m, 4) 0-based, {name: [(a, b) node pairs]}."""
-    gmsh.model.add("section")
-    geo = gmsh.model.geo
-    named, nseg = build(geo)
-    geo.synchronize()
-    for tag, n in nseg.items():
-        gmsh.model.mesh.setTransfiniteCurve(tag, (n + 1) // 2 + 1)  # n rounded up to even
-    fields = []
-    for names, s_near, d_grow, s_far in sizes:
-        f_d = gmsh.model.mesh.field.add("Distance")
-        gmsh.model.mesh.field.setNumbers(f_d, "CurvesList", [t for n in names for t in named[n]])
-        gmsh.model.mesh.field.setNumber(f_d, "Sampling", 200)
-        f_t = gmsh.model.mesh.field.add("Threshold")
-        gmsh.model.mesh.field.setNumber(f_t, "InField", f_d)
-        gmsh.model.mesh.field.setNumber(f_t, "SizeMin", 2 * s_near)
-        gmsh.model.mesh.field.setNumber(f_t, "SizeMax", 2 * s_far)
-        gmsh.model.mesh.field.setNumber(f_t, "DistMin", s_near)
-        gmsh.model.mesh.field.setNumber(f_t, "DistMax", d_grow)
-        fields.append(f_t)
-    f_min = gmsh.model.mesh.field.add("Min")
-    gmsh.model.mesh.field.setNumbers(f_min, "FieldsList", fields)
-    gmsh.model.mesh.field.setAsBackgroundMesh(f_min)
-    gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
-    gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
-    gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
-    gmsh.option.setNumber("Mesh.Algorithm", 8)  # frontal-Delaunay for quads
-    gmsh.option.setNumber("Mesh.RecombineAll", 1)
-    gmsh.option.setNumber("Mesh.RecombinationAlgorithm", 1)  # blossom
-    # blossom may leave a few triangles: split every element into quadrilaterals instead (halves
-    # the sizes, which are therefore doubled above)
-    gmsh.option.setNumber("Mesh.SubdivisionAlgorithm", 1)
-    gmsh.model.mesh.generate(2)
-    gmsh.model.mesh.optimize("Laplace2D")
-
-    tags, coords, _ = gmsh.model.mesh.getNodes()
-    index = {int(t): i for i, t in enumerate(tags)}
-    nodes = coords.reshape(-1, 3)[:, :2].copy()
-    quads = []
-    for etype, _, enodes in zip(*gmsh.model.mesh.getElements(2), strict=True):
-        if etype != 3:
-            raise RuntimeError(f"non-quadrilateral element type {etype} in the section mesh")
-        quads.append(np.array([index[int(t)] for t in enodes]).reshape(-1, 4))
-    quads = np.vstack(quads)
-    edges = {}
-    for name, curves in named.items():
-        pairs = []
-        for c in curves:
-            for etype, _, enodes in zip(*gmsh.model.mesh.getElements(1, c), strict=True):
-                assert etype == 1
-                e = np.array([index[int(t)] for t in enodes]).reshape(-1, 2)
-                pairs += [tuple(p) for p in e]
-        edges[name] = pairs
-    gmsh.model.remove()
-    # drop unused nodes (geometry points not on the mesh), renumber
-    used = np.unique(quads)
-    remap = -np.ones(len(nodes), int)
-    remap[used] = np.arange(len(used))
-    nodes = nodes[used]
-    quads = remap[quads]
-    edges = {k: [(remap[a], remap[b]) for a, b in v] for k, v in edges.items()}
-    # counter-clockwise in (x, z)
-    p = nodes[quads]
-    area2 = np.sum(p[:, :, 0] * np.roll(p[:, :, 1], -1, 1) - np.roll(p[:, :, 0], -1, 1) * p[:, :, 1], 1)
-    quads[area2 < 0] = quads[area2 < 0][:, ::-1]
-    return nodes, quads, edges
-
-
 def clip_section(lv):
     """The clip's half section x >= 0 (base + arm + hook), in (x, z)."""
     pts = [
@@ -186,13 +119,13 @@ def clip_section(lv):
         for n in ("ramp", "land", "retention"):
             a, b = pts[names.index(n)], pts[(names.index(n) + 1) % len(pts)]
             nseg[named[n][0]] = max(2, round(math.dist(a, b) / fine))
-        return named, nseg
+        return named, nseg, {}
 
     sizes = [
         (("ramp", "land", "retention"), fine, lv["grow"], lv["bulk"]),
         (("base_top_out", "base_top_in"), lv["root"], 1.0, lv["bulk"]),
     ]
-    return _mesh_section(build, sizes)
+    return mesh_section(build, sizes)
 
 
 def block_section(lv):
@@ -226,71 +159,10 @@ def block_section(lv):
             c["fillet_hi"]: lv["fillet_seg"],
             c["side"]: max(2, round((BLOCK_H - 2 * r) / fine)),
         }
-        return {k: [v] for k, v in c.items()}, nseg
+        return {k: [v] for k, v in c.items()}, nseg, {}
 
     sizes = [(("fillet_lo", "side", "fillet_hi"), fine, 0.6, 0.25)]
-    return _mesh_section(build, sizes)
-
-
-def y_layers(n, y1):
-    """n layers over [0, y1], graded towards the free edge y = B/2 (ratio 0.8 per layer)."""
-    w = 0.8 ** np.arange(n)
-    return np.concatenate([[0.0], np.cumsum(w) / w.sum() * y1])
-
-
-def extrude(nodes2, quads, ys, first_node, first_elem):
-    """Hexahedra from the section: node (i, k) is section node i at ys[k]."""
-    n2, nl = len(nodes2), len(ys) - 1
-    xyz = np.zeros((n2 * len(ys), 3))
-    for k, y in enumerate(ys):
-        xyz[k * n2 : (k + 1) * n2] = np.column_stack([nodes2[:, 0], np.full(n2, y), nodes2[:, 1]])
-    ids = first_node + np.arange(len(xyz))
-    hexes = []
-    for k in range(nl):
-        lo, hi = quads + k * n2, quads + (k + 1) * n2
-        # CCW in (x, z) has normal -y; Abaqus wants nodes 1-4 with the normal towards 5-8 (+y):
-        # reverse the order of the bottom and top faces
-        hexes.append(np.hstack([lo[:, ::-1], hi[:, ::-1]]))
-    hexes = np.vstack(hexes)
-    conn = ids[hexes]
-    eids = first_elem + np.arange(len(conn))
-    return xyz, ids, conn, eids, n2
-
-
-def hex_volume_sign(xyz_of, conn):
-    p = xyz_of(conn)
-    a, b, d, e = p[:, 0], p[:, 1], p[:, 3], p[:, 4]
-    return np.einsum("ij,ij->i", np.cross(b - a, d - a), e - a)
-
-
-def faces_on(edges, quads, nl, n2q, first_elem):
-    """(element id, face label) of the extruded faces on the section edges `edges`."""
-    # after reversal, hex nodes 1-4 = quad nodes (3, 2, 1, 0); Abaqus faces of the quad edges:
-    # S3 = nodes 1-2 -> quad edge (3, 2); S4 = 2-3 -> (2, 1); S5 = 3-4 -> (1, 0); S6 = 4-1 -> (0, 3)
-    edge_face = {}
-    for qi, q in enumerate(quads):
-        for (i, j), s in zip(((3, 2), (2, 1), (1, 0), (0, 3)), ("S3", "S4", "S5", "S6"), strict=True):
-            edge_face[frozenset((q[i], q[j]))] = (qi, s)
-    out = []
-    for k in range(nl):
-        for a, b in edges:
-            qi, s = edge_face[frozenset((a, b))]
-            out.append((first_elem + k * n2q + qi, s))
-    return out
-
-
-_FACE_NODES = {"S3": (0, 1, 5, 4), "S4": (1, 2, 6, 5), "S5": (2, 3, 7, 6), "S6": (3, 0, 4, 7)}
-
-
-def _face_nodes(conn, face):
-    e, s = face
-    return conn[e - 1][list(_FACE_NODES[s])]
-
-
-def _write_ids(f, ids, per_line=16):
-    ids = list(ids)
-    for i in range(0, len(ids), per_line):
-        f.write(", ".join(str(int(v)) for v in ids[i : i + per_line]) + ",\n")
+    return mesh_section(build, sizes)
 
 
 def write_mesh(lv, out, tag):
@@ -345,7 +217,7 @@ def write_mesh(lv, out, tag):
         if n in ("bottom", "fillet_lo"):
             block_slave += [f for f in fs if (f[0] - beids[0]) // len(bq) < ncl]
 
-    land = np.unique([n for e in faces_on(ce["land"], cq, ncl, len(cq), 1) for n in _face_nodes(cconn, e)])
+    land = np.unique([n for e in faces_on(ce["land"], cq, ncl, len(cq), 1) for n in face_nodes(cconn, e)])
 
     path = Path(out) / f"mesh_{tag}.inp"
     with open(path, "w") as f:
@@ -360,11 +232,11 @@ def write_mesh(lv, out, tag):
                 f.write(f"{e}, " + ", ".join(str(int(v)) for v in c) + "\n")
         for name, ids in (("FIX", fix), ("SYMX", symx), ("SYMY", symy), ("BLOCKN", bids), ("LANDN", land)):
             f.write(f"*NSET, NSET={name}\n")
-            _write_ids(f, ids)
+            write_ids(f, ids)
         f.write("*NSET, NSET=MON\n")
-        _write_ids(f, monitors.values())
+        write_ids(f, monitors.values())
         f.write("*NSET, NSET=PROF\n")  # the hook's ramp, land and retention face at y = 0
-        _write_ids(f, sorted({1 + i for n in ("ramp", "land", "retention") for e in ce[n] for i in e}))
+        write_ids(f, sorted({1 + i for n in ("ramp", "land", "retention") for e in ce[n] for i in e}))
         for name, n in monitors.items():
             f.write(f"*NSET, NSET={name}\n{n},\n")
         for name, faces in (

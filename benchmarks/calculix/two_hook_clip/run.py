@@ -23,17 +23,16 @@ from __future__ import annotations
 
 import argparse
 import csv
+import functools
 import math
-import os
-import re
-import shutil
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 import make_deck as md
 import numpy as np
+
+sys.path.append(str(Path(__file__).resolve().parents[1]))  # benchmarks/calculix: ccx_common
+import ccx_common as cc
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parents[2]
@@ -68,13 +67,6 @@ COLUMNS = [
 PASS_THROUGH = 0.02  # mm: a hook edge deeper than this inside the block ends the curve
 
 
-def wait_for_other_ccx():
-    if shutil.which("pgrep") is None:
-        return
-    while subprocess.run(["pgrep", "-x", "ccx"], capture_output=True).returncode == 0:
-        time.sleep(2)
-
-
 def write_decks(names):
     DECKS.mkdir(exist_ok=True)
     for level in sorted({RUNS[n][0] for n in names}):
@@ -88,94 +80,14 @@ def write_decks(names):
 def run_ccx(name, work, wait, limit_s):
     """Run ccx on decks/<name>.inp in `work`; stop it after `limit_s` seconds (the .dat file
     keeps every increment converged so far)."""
-    work.mkdir(parents=True, exist_ok=True)
-    level = RUNS[name][0]
-    for f in (f"{name}.inp", f"mesh_m{level}.inp"):
-        shutil.copy(DECKS / f, work / f)
-    env = dict(os.environ, OMP_NUM_THREADS="1", CCX_NPROC_EQUATION_SOLVER="1")
-    if wait:
-        wait_for_other_ccx()
-    t0 = time.time()
-    stopped = False
-    with open(work / f"{name}.log", "w") as log:
-        proc = subprocess.Popen(["ccx", "-i", name], cwd=work, env=env, stdout=log, stderr=subprocess.STDOUT)
-        while proc.poll() is None:
-            if time.time() - t0 > limit_s:
-                proc.terminate()
-                proc.wait()
-                stopped = True
-                break
-            time.sleep(2)
-    wall = time.time() - t0
-    note = "stopped at the time limit" if stopped else f"ccx rc {proc.returncode}"
-    (work / f"{name}.wall").write_text(f"{wall:.1f} {note}\n")
-    print(f"{name}: {note}, {wall:.0f} s")
-    return wall
-
-
-def _float(v):
-    """Fortran E format drops the E of three-digit exponents (-4.130105-101)."""
-    try:
-        return float(v)
-    except ValueError:
-        return float(re.sub(r"(\d)([+-]\d+)$", r"\1E\2", v))
-
-
-def _vec(fields):
-    return np.array([_float(v) for v in fields])
-
-
-def parse_dat(path):
-    """Per output time: total RF of BLOCKN, FIX, SYMX and the displacements of MON and PROF."""
-    txt = Path(path).read_text()
-    totals, disp, seen = {}, {}, set()
-    for s, t, fx, fy, fz in re.findall(
-        r"total force \(fx,fy,fz\) for set (\w+) and time\s+(\S+)\s+(\S+)\s+(\S+)\s+(\S+)", txt
-    ):
-        totals.setdefault(s, {}).setdefault(float(t), _vec([fx, fy, fz]))
-    for s, t, body in re.findall(
-        r"displacements \(vx,vy,vz\) for set (\w+) and time\s+(\S+)\n\n((?:.+\n)+)", txt
-    ):
-        if (s, t) not in seen:  # the first print at a time (ccx repeats the last one when it gives up)
-            seen.add((s, t))
-            disp.setdefault(float(t), {}).update(
-                {int(r.split()[0]): _vec(r.split()[1:4]) for r in body.splitlines()}
-            )
-    times = sorted(set(totals["BLOCKN"]) & set(totals["FIX"]) & set(totals["SYMX"]) & set(disp))
-    sta = Path(path).with_suffix(".sta")
-    if sta.exists():  # converged increments only
-        done = [float(r.split()[-3]) for r in sta.read_text().splitlines()[2:] if r.split()[2].isdigit()]
-        times = [t for t in times if any(abs(t - d) < 1e-5 for d in done)]
-    return times, totals, disp
-
-
-def mesh_nodes(level, nset):
-    """{node: (x, z)} of a node set of mesh_m<level>.inp."""
-    txt = (DECKS / f"mesh_m{level}.inp").read_text()
-    body = re.search(rf"\*NSET, NSET={nset}\n((?:[\d, ]+\n)+)", txt).group(1)
-    ids = {int(v) for v in body.replace("\n", "").split(",") if v.strip()}
-    nodes = re.search(r"\*NODE, NSET=NALL\n((?:.+\n)+?)\*", txt).group(1)
-    out = {}
-    for r in nodes.splitlines():
-        n, x, _, z = r.split(",")
-        if int(n) in ids:
-            out[int(n)] = (float(x), float(z))
-    return out
+    inputs = [DECKS / f"{name}.inp", DECKS / f"mesh_m{RUNS[name][0]}.inp"]
+    return cc.run_ccx(name, inputs, work, wait, limit_s)
 
 
 def block_distance(x, z, travel):
     """Signed distance (mm, negative inside) of the point (x, z) from the block's rounded section."""
-    r = md.BLOCK_FILLET
     cz = md.Z_BLOCK - travel + md.BLOCK_H / 2
-    qx = abs(x) - (md.GAP / 2 - r)
-    qz = abs(z - cz) - (md.BLOCK_H / 2 - r)
-    return math.hypot(max(qx, 0.0), max(qz, 0.0)) + min(max(qx, qz), 0.0) - r
-
-
-def monitors_of(level):
-    """Node numbers of the monitor points (from the mesh file's single-node sets)."""
-    txt = (DECKS / f"mesh_m{level}.inp").read_text()
-    return {k: int(v) for k, v in re.findall(r"\*NSET, NSET=(\w+)\n(\d+),\n", txt)}
+    return cc.rounded_rect_distance(x, z, 0.0, cz, md.GAP / 2, md.BLOCK_H / 2, md.BLOCK_FILLET)
 
 
 def extract(name, work):
@@ -187,9 +99,10 @@ def extract(name, work):
     which a node of the hook's ramp, land or retention face (y = 0) lies more than PASS_THROUGH mm
     inside the block (the contact has let the block through the hook)."""
     level = RUNS[name][0]
-    times, tot, disp = parse_dat(work / f"{name}.dat")
-    mon = monitors_of(level)
-    prof = mesh_nodes(level, "PROF")
+    times, tot, disp = cc.parse_dat(work / f"{name}.dat", ("BLOCKN", "FIX", "SYMX"))
+    mesh = DECKS / f"mesh_m{level}.inp"
+    mon = cc.monitors_of(mesh)
+    prof = cc.mesh_nodes(mesh, "PROF")
     rows = []
     for t in times:
         b, f, s = tot["BLOCKN"][t], tot["FIX"][t], tot["SYMX"][t]
@@ -216,15 +129,7 @@ def extract(name, work):
     return kept, rows[-1, 1]
 
 
-def _r(v, n):
-    return round(float(v), n)
-
-
-def smoothed(travel, force):
-    """The force on a uniform travel grid (DTRAVEL, the nominal increment), averaged over 5 grid
-    points (a window of 5 increments: the zig-zag of node-to-surface contact averages out)."""
-    grid = np.arange(travel[0], travel[-1] + 1e-9, md.DTRAVEL)
-    return grid, np.convolve(np.interp(grid, travel, force), np.ones(5) / 5, mode="same")
+_r = functools.partial(cc.rounded, drop_negative_zero=False)  # the summary keeps -0.0
 
 
 def summarise(names, work):
@@ -235,7 +140,7 @@ def summarise(names, work):
         d, last = extract(n, work)
         level, mu, penalty, curve = RUNS[n]
         i = int(np.argmax(d[:, 2]))
-        g, a = smoothed(d[:, 1], d[:, 2])
+        g, a = cc.smoothed(d[:, 1], d[:, 2], md.DTRAVEL)
         j = int(np.argmax(a[2:-2])) + 2
         wall = (work / f"{n}.wall").read_text().strip() if (work / f"{n}.wall").exists() else ""
         rows.append(
@@ -278,13 +183,8 @@ def stiffness(work, wait):
         tag = f"m{level}"
         _, info = md.write_mesh(md.LEVELS[level], DECKS, tag)
         md.write_load_deck(f"load_{tag}", tag, DECKS, info["land_nodes"])
-        for f in (f"load_{tag}.inp", f"mesh_{tag}.inp"):
-            shutil.copy(DECKS / f, work / f)
-        env = dict(os.environ, OMP_NUM_THREADS="1", CCX_NPROC_EQUATION_SOLVER="1")
-        if wait:
-            wait_for_other_ccx()
-        subprocess.run(["ccx", "-i", f"load_{tag}"], cwd=work, env=env, capture_output=True, check=True)
-        disp = parse_dat_load(work / f"load_{tag}.dat")
+        cc.solve_ccx(f"load_{tag}", [DECKS / f"load_{tag}.inp", DECKS / f"mesh_{tag}.inp"], work, wait)
+        disp = cc.parse_dat_load(work / f"load_{tag}.dat")
         m = info["monitors"]
         edge, tip = disp[m["EDGE"]][0], disp[m["TIP"]][0]
         out.append([level, md.LEVELS[level]["fine"], info["clip_elements"], edge, tip])
@@ -294,12 +194,6 @@ def stiffness(work, wait):
         w.writerow(["mesh", "contact_size_mm", "clip_elements", "edge_ux_mm_per_N", "tip_ux_mm_per_N"])
         for r in out:
             w.writerow([*r[:3], f"{r[3] / md.LOAD_CHECK:.6f}", f"{r[4] / md.LOAD_CHECK:.6f}"])
-
-
-def parse_dat_load(path):
-    txt = Path(path).read_text()
-    body = re.search(r"displacements \(vx,vy,vz\) for set MON and time\s+\S+\n\n((?:.+\n)+)", txt).group(1)
-    return {int(r.split()[0]): _vec(r.split()[1:4]) for r in body.splitlines()}
 
 
 def main():
