@@ -62,14 +62,15 @@ def check_out_dir(out) -> Path:
 _HOOKS = {"cantilever": 1, "two_hook_clip": 2, "cable_latch": 1}
 
 
-def _lever(c) -> float:
+def _lever(scene) -> float:
     """The design guide's cantilever length, mm: the arm's length for the hooks; for the latch,
     loaded part-way along its arm, the distance from its root to the top of the catch's flat
     (where the lip first pushes it in by the whole undercut)."""
+    c = scene["connector"]
     if c["type"] == "cable_latch":
-        from jsnap._geometry.presets import hook_of
+        from jsnap._geometry.scene import connector_geometry
 
-        return c["length"] - hook_of(c).z_flat_end
+        return c["length"] - connector_geometry(scene).z_flat_end
     return c["length"]
 
 
@@ -84,7 +85,7 @@ def design_guide_strain(scene) -> float | None:
     c = scene["connector"]
     if not c or c["type"] not in _HOOKS:
         return None
-    L, h, y = _lever(c), c["thickness"], c["undercut"]
+    L, h, y = _lever(scene), c["thickness"], c["undercut"]
     h_tip = c.get("tip_thickness") or h
     return y * h / (1.09 * L**2) if abs(h_tip - h / 2) < 1e-9 else 1.5 * h * y / L**2
 
@@ -99,7 +100,7 @@ def design_guide_force(scene) -> float | None:
     c, m = scene["connector"], scene["material"]
     if not c or c["type"] not in _HOOKS:
         return None
-    L, h, b = _lever(c), c["thickness"], c["width"]
+    L, h, b = _lever(scene), c["thickness"], c["width"]
     eps = design_guide_strain(scene)
     P = b * h**2 * m["youngs_modulus"] * eps / (6 * L)
     mu, ta = scene["contact"]["friction"], math.tan(math.radians(c["lead_angle"]))
