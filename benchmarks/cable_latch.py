@@ -35,7 +35,7 @@ import numpy as np
 from _common import calculix_row, code_version, curve_stats, load_scene, plot_curves, scan_timing
 
 import jsnap
-from jsnap._apps.simulate import arm_box, design_guide_force, design_guide_strain
+from jsnap._apps.simulate import arm_box, arm_elements, design_guide_force, design_guide_strain
 from jsnap._build.strain import scan
 from jsnap._geometry.scene import default_scene_path
 
@@ -54,9 +54,7 @@ def arm_peak_strain(model, res, connector) -> float:
     """The largest principal strain over the run in the latch's arm (below its root, without
     the catch), dimensionless."""
     nodes, cells = np.asarray(model.mesh.nodes), np.asarray(model.mesh.cells)
-    x_max, z_max = arm_box(connector)
-    vert = nodes[cells[:, :4]]
-    arm = np.all((vert[..., 2] <= z_max + 1e-9) & (vert[..., 0] <= x_max + 1e-9), axis=1)
+    arm = arm_elements(nodes, cells, arm_box(connector))
     x = np.asarray(res.x)
     t = np.asarray(res.t, np.float64)
     peaks, _ = scan(model, x, t, float(model.params.E), float(model.params.nu), regions={"arm": arm})

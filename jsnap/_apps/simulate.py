@@ -199,6 +199,15 @@ def arm_box(connector) -> tuple[float, float] | None:
     return math.inf, connector["length"]
 
 
+def arm_elements(nodes: np.ndarray, cells: np.ndarray, arm: tuple[float, float] | float) -> np.ndarray:
+    """(m,) bool: the elements with every vertex at ``x <= x_max`` and ``z <= z_max`` for
+    ``arm = (x_max, z_max)`` mm (see :func:`arm_box`; a number is ``z_max``)."""
+    x_max, z_max = (math.inf, arm) if np.isscalar(arm) else arm
+    vert = nodes[cells[:, :4]]
+    tol = 1e-12 * float(np.linalg.norm(np.ptp(nodes, axis=0)))
+    return np.all((vert[..., 2] <= z_max + tol) & (vert[..., 0] <= x_max + tol), axis=1)
+
+
 def write_series(model, res, out: Path, arm: tuple[float, float] | float | None, frames: int = 100):
     """The strain of every step and the deformed part at about ``frames`` times as a ParaView
     series (``vtu/socket.pvd``, with each element's largest principal strain and von Mises
@@ -215,10 +224,7 @@ def write_series(model, res, out: Path, arm: tuple[float, float] | float | None,
     nodes, cells = np.asarray(model.mesh.nodes), np.asarray(model.mesh.cells)
     regions = {"part": None}
     if arm is not None:
-        x_max, z_max = (math.inf, arm) if np.isscalar(arm) else arm
-        vert = nodes[cells[:, :4]]
-        tol = 1e-12 * float(np.linalg.norm(np.ptp(nodes, axis=0)))
-        regions["arm"] = np.all((vert[..., 2] <= z_max + tol) & (vert[..., 0] <= x_max + tol), axis=1)
+        regions["arm"] = arm_elements(nodes, cells, arm)
     t = np.asarray(res.t, dtype=np.float64)
     peaks, kept = scan(model, x, t, E, nu, keep=keep, regions=regions)
     cell_data = {"max_principal_strain": kept["max_principal"], "von_mises_stress_MPa": kept["von_mises"]}

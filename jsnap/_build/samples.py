@@ -461,9 +461,9 @@ def _dedupe(X: np.ndarray, corner: np.ndarray, normals: np.ndarray, direction, t
     """
     key = np.round(X / tol).astype(np.int64)
     edge = np.cross(normals[:, 0], normals[:, 1])
-    size = np.linalg.norm(edge, axis=1)
     d = np.asarray(direction, np.float64) / np.linalg.norm(direction)
-    along = np.where(size > 1e-12, np.abs(edge @ d) / np.where(size > 1e-12, size, 1.0), 1.0)
+    # |cos| of the edge to the motion (face points, whose two normals agree: 0, never compared).
+    along = np.abs(edge @ d) / np.maximum(np.linalg.norm(edge, axis=1), 1e-12)
     order = np.lexsort((np.round(along, 9), ~corner, *key.T[::-1]))
     k = key[order]
     new = np.ones(len(order), bool)

@@ -17,8 +17,8 @@ apart: it keeps its own contact sampling along its section (``jsnap._build.sampl
   back behind it. The contact moves away from the root as the lip travels, so the arm grows
   softer under it (a cantilever loaded at a travelling point, not at its tip).
 
-The clip and the latch are tet-meshed with gmsh (the mesher the parts from files use) from its exact CAD solid,
-the section polygon extruded over the width, finer along the hooks' (catch's) edges
+The clip and the latch are tet-meshed with gmsh (the mesher the parts from files use) from
+their exact CAD solids, the section polygon extruded over the width, finer along the hooks' (catch's) edges
 (see :func:`_hook_size`). Units: mm, degrees.
 """
 
@@ -282,14 +282,8 @@ def generate(kind: str, c: Mapping, plug: Mapping, mesh_size: float) -> Preset:
         return Preset(mesh_cantilever(hook, mesh_size), rigid, stroke)
     fine = _hook_size(hook, mesh_size)
     if kind == "two_hook_clip":
-        big = np.inf
-        points, cells = _gmsh_mesh(
-            clip_section(c),
-            width=hook.width,
-            size=mesh_size,
-            fine=fine,
-            fine_box=((-big, hook.length), (big, big)),
-        )
+        hooks = ((-np.inf, hook.length), (np.inf, np.inf))
+        points, cells = _gmsh_mesh(clip_section(c), width=hook.width, size=mesh_size, fine=fine, fine_box=hooks)
         return Preset(_finish(points, cells, -c["base_thickness"]), rigid, stroke)
     if kind == "cable_latch":
         # Finer on the catch's edges only (the arm's outer face continues above and below it).

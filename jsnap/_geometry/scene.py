@@ -235,7 +235,6 @@ CONNECTORS: dict[str, dict[str, Key]] = {
     ),
     "cable_latch": _ordered(
         {
-            **_hook_keys("latch", "x"),
             "length": _pos("mm", 10.0, "L, latch arm length from its free end (z = 0) up to its root (z = L)"),
             "thickness": _pos("mm", 0.8, "h, latch arm thickness (x, the bending direction)"),
             "width": _pos("mm", 3.2, "b, width of the latch and the plug body (y)"),
