@@ -6,11 +6,19 @@ import numpy as np
 import pytest
 
 import jsnap
-from jsnap._geometry.presets import clip_section, default_rigid, generate, latch_section, latch_tip_deflection
+from jsnap._geometry.presets import (
+    box_lid_pieces,
+    clip_section,
+    default_rigid,
+    generate,
+    latch_section,
+    latch_tip_deflection,
+)
 from jsnap._geometry.scene import SceneError, default_scene_path
 
 CLIP = default_scene_path().parent / "two_hook_clip.toml"
 LATCH = default_scene_path().parent / "cable_latch.toml"
+LID = default_scene_path().parent / "box_lid.toml"
 
 
 def _area(poly):
@@ -310,3 +318,124 @@ def test_latch_reduced_model_follows_its_full_model_on_other_dimensions():
     F, F0, spread = _reduced_and_full_peaks(scene)
     assert F0 > 0.5
     assert abs(F.max() / F0 - 1) <= 0.03 + spread, (F.max(), F0, spread)
+
+
+# --------------------------------------------------------------------------------------------
+# The box lid
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def lid():
+    scene = jsnap.load_scene(LID)
+    c = scene["connector"]
+    return scene, generate(c["type"], c, scene["plug"], scene["solver"]["mesh_size"])
+
+
+def test_lid_mesh_fills_its_pieces_exactly(lid):
+    """gmsh fuses the plate and the four arms into one part: the tetrahedra's volume is the
+    plate's plus four arms' (section areas by the shoelace formula times their widths), the
+    fixed nodes are exactly the plate's outer face, and the arms stand where the keys put them."""
+    scene, preset = lid
+    c = scene["connector"]
+    mesh = preset.mesh
+    pieces = box_lid_pieces(c)
+    assert len(pieces) == 5 and all(_area(s) > 0 for s, _, _ in pieces)
+    volume = sum(_area(s) * (y1 - y0) for s, y0, y1 in pieces)
+    np.testing.assert_allclose(mesh.volumes().sum(), volume, rtol=1e-10)
+    T = c["lid_thickness"]
+    np.testing.assert_allclose(mesh.points[mesh.base_nodes, 2], -T, atol=1e-12)
+    assert np.isclose(mesh.points[:, 2], -T, atol=1e-9).sum() == mesh.base_nodes.size
+    # The hooks' lips reach gap/2 - undercut from the axis, at y = +-spacing/2 +- width/2.
+    lips = mesh.points[np.isclose(np.abs(mesh.points[:, 0]), 0.5 * c["gap"] - c["undercut"], atol=1e-9)]
+    assert lips.size and np.all(lips[:, 2] > c["length"] - 1e-9)
+    np.testing.assert_allclose(
+        np.sort(np.unique(np.round(np.abs(lips[:, 1]), 9)))[[0, -1]],
+        [0.5 * (c["spacing"] - c["width"]), 0.5 * (c["spacing"] + c["width"])],
+    )
+    # One connected part: every node belongs to a tetrahedron and the plate joins the arms.
+    assert np.unique(mesh.cells).size == mesh.points.shape[0]
+
+
+def test_lid_box_is_tilted_above_the_hooks_and_latches_them_all(lid):
+    """The box (a rounded block gap wide, turned by `tilt` about x) starts with its lowest
+    point plug.clearance above the hooks' tops; after the stroke, the plane of its top face is
+    0.3 mm below the retention faces over the far edge of the last hooks (+y)."""
+    from jsnap._geometry.motion import quat_matrix
+
+    scene, preset = lid
+    c, p = scene["connector"], scene["plug"]
+    box = preset.plug
+    np.testing.assert_allclose(2 * box.half[:2], [c["gap"], c["spacing"] + c["width"] + 1.0])
+    R = quat_matrix(box.rotation)
+    th = np.radians(c["tilt"])
+    np.testing.assert_allclose(
+        R, [[1, 0, 0], [0, np.cos(th), -np.sin(th)], [0, np.sin(th), np.cos(th)]], atol=1e-15
+    )
+    surface = np.asarray(box.mesh().vertices) @ R.T + box.start
+    z_top = preset.mesh.points[:, 2].max()
+    # The surface mesh lies inside the exact rounded block by its chord error (< 1e-3 mm).
+    assert surface[:, 2].min() == pytest.approx(z_top + p["clearance"], abs=1e-3)
+    assert surface[:, 1][surface[:, 2].argmin()] < -c["spacing"] / 2  # its -y end leads
+    # The top face's plane: normal R e_z through the centre + R (0, 0, half height).
+    n, q = R[:, 2], box.start + R[:, 2] * box.half[2] - [0, 0, preset.stroke]
+    y_far = 0.5 * (c["spacing"] + c["width"])
+    z_at_far = q[2] - n[1] * (y_far - q[1]) / n[2]
+    assert z_at_far == pytest.approx(c["length"] - 0.3, abs=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"connector.gap": 1.6}, r"connector\.gap = 1\.6: facing hooks' lips would touch"),
+        ({"connector.spacing": 4.0}, r"connector\.spacing = 4\.0: the two hooks on a side would overlap"),
+        ({"connector.tilt": 12.0}, r"connector\.tilt = 12\.0: must be in \[0, 10\]"),
+        ({"connector.lid_thickness": 0.0}, r"connector\.lid_thickness = 0\.0: must be > 0"),
+        ({"connector.base_margin": 1.0}, r"unknown key connector\.base_margin"),
+    ],
+)
+def test_lid_keys_are_checked_on_load(changes, message):
+    with pytest.raises(SceneError, match=message):
+        jsnap.load_scene(LID).replace(changes)
+
+
+@pytest.fixture(scope="module")
+def lid_run():
+    """The shipped lid's default (reduced) model in float64, frictionless, on a coarse 1.2 mm
+    mesh (a SceneWarning: coarser than the undercut), quicker box. (Its full model, dense, would
+    need ~10 GB even there; benchmarks/box_lid.py compares the two.)"""
+    import warnings
+
+    coarse = {"solver.mesh_size": 1.2, "motion.speed": 20.0, "contact.friction": 0.0}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", jsnap.SceneWarning)
+        scene = jsnap.load_scene(LID).replace(coarse)
+    model = jsnap.build(scene)
+    return scene, model, jsnap.rollout(model, dtype="float64").check()
+
+
+def test_lid_hooks_engage_one_pair_after_the_other(lid_run):
+    """The tilt delays the +y pair by the box's slope over the spacing: its first contact comes
+    spacing * tan(tilt) mm of travel after the -y pair's (within two steps); the two pairs, the
+    same hooks met at different times, reach nearly the same peak; and while only the -y pair is pushed
+    the base carries that push's moment about x (the sensor reads it)."""
+    scene, model, res = lid_run
+    c = scene["connector"]
+    travel = np.asarray(res.travel)
+    rest = np.asarray(model.samples.rest)[np.asarray(res.contact_index)]
+    force = np.asarray(res.contact_force) * np.asarray(res.contact_active)[..., None]  # on the box
+    ahead = np.where(rest[..., 1] < 0, -force[..., 2], 0.0).sum(axis=1)  # on the -y hooks, down
+    behind = np.where(rest[..., 1] > 0, -force[..., 2], 0.0).sum(axis=1)
+    first = [travel[np.argmax(f > 1e-6)] for f in (ahead, behind)]
+    step = float(np.diff(travel).max())
+    delay = c["spacing"] * np.tan(np.radians(c["tilt"]))
+    assert first[1] - first[0] == pytest.approx(delay, abs=2 * step)
+    # Within 5 %: the gmsh mesh is not mirror-symmetric, and the lid carries the first pair's
+    # snap to the second while it is loaded.
+    np.testing.assert_allclose(np.abs(ahead).max(), np.abs(behind).max(), rtol=0.05)
+    only = np.flatnonzero((ahead > 0.5) & (np.abs(behind) < 1e-9))
+    assert only.size >= 5
+    nodes, free = np.asarray(model.mesh.nodes), np.asarray(model.mesh.free)
+    o = nodes[np.setdiff1d(np.arange(nodes.shape[0]), free[0::3] // 3)].mean(axis=0)
+    moment = np.cross(rest[only] - o, -force[only]).sum(axis=1)  # of the push on the lid
+    np.testing.assert_allclose(np.asarray(res.base_moment)[only, 0], moment[:, 0], rtol=0.01)

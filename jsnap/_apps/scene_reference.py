@@ -61,6 +61,15 @@ _CONNECTORS = {
     "a block exactly `gap` wide pushed down between the hooks: both hooks are squeezed apart at "
     "once. Meshed with gmsh at `solver.mesh_size`, along the hooks' edges at the smaller of that "
     "and 2.5 undercuts.",
+    "box_lid": "A lid with four snap hooks pressed onto a box (a switch box): a plate "
+    "`lid_thickness` thick, z in [-lid_thickness, 0], whose outer face is fixed (the robot's flat "
+    "platen holds it), and four arms of the clip's section standing on it, hooks pointing inwards: "
+    "two pairs facing each other across the box, their inner faces `gap` apart (x), the two arms "
+    "of a side `spacing` apart between their centres (y); the plate reaches `lid_margin` beyond "
+    "the arms. The rigid part is the box's rim, a block `gap` wide and spacing + width + 1 deep, "
+    "turned by `tilt` about the x axis and pushed straight down along -z: the hooks at -y engage "
+    "first, those at +y spacing tan(tilt) mm of travel later; the default stroke latches all four. "
+    "Meshed with gmsh like the clip (the plate and arms fused into one part).",
     "cable_latch": "The flexible latch of a cable plug (a LAN plug), on the plug: the latch arm "
     "spans x in [0, thickness] and z from its free end z = 0 up to its root z = length, where a "
     "bridge 2 thickness tall joins it over a `gap` to the plug body x in "

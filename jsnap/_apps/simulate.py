@@ -58,8 +58,8 @@ def check_out_dir(out) -> Path:
 
 
 # Presets made of cantilever hooks with a rigid root, and how many hooks the rigid part deflects
-# at once (the design guide's beam formulas hold per hook).
-_HOOKS = {"cantilever": 1, "two_hook_clip": 2, "cable_latch": 1}
+# (the design guide's beam formulas hold per hook; the box lid's four at once when untilted).
+_HOOKS = {"cantilever": 1, "two_hook_clip": 2, "box_lid": 4, "cable_latch": 1}
 
 
 def _lever(scene) -> float:

@@ -196,10 +196,13 @@ def _geometry(scene: Scene) -> _Geometry:
         d = np.asarray(m["direction"] or [0.0, 0.0, -1.0], np.float64)
         d = d / np.linalg.norm(d)
         stroke = m["stroke"] if m["stroke"] is not None else preset.stroke
-        if m["direction"] is None:
+        # A preset's turned rigid part (the box lid's tilted box) goes straight in, turned.
+        turned = None if scene["rigid"] else preset.plug.rotation
+        if m["direction"] is None and turned is None:
             poses = straight_insertion(rigid.start, m["speed"], stroke, m["withdraw"], s["dt"])
         else:
-            poses = straight_poses(rigid.start, d, m["speed"], stroke, m["withdraw"], s["dt"])[:, :3]
+            poses = straight_poses(rigid.start, d, m["speed"], stroke, m["withdraw"], s["dt"])
+            poses = poses[:, :3] if turned is None else np.concatenate([poses[:, :3], np.broadcast_to(turned, (poses.shape[0], 4))], axis=1)
     else:
         poses = sample_poses(*keys, rigid.start, s["dt"])
         net = poses[np.argmax(np.linalg.norm(poses[:, :3] - poses[0, :3], axis=1)), :3] - poses[0, :3]

@@ -16,12 +16,15 @@ class Plug:
     Attributes:
         half: (3,) half extents, mm.   radius: fillet radius, mm.
         start: (3,) centre at t = 0, mm (in the frame of the deformable part's base).
+        rotation: (4,) its orientation, a unit quaternion (w, x, y, z), kept along a straight
+            insertion (the box lid's tilted box); None: axis-aligned.
     """
 
-    def __init__(self, half, radius: float, start):
+    def __init__(self, half, radius: float, start, rotation=None):
         self.half = np.asarray(half, dtype=np.float64)
         self.radius = float(radius)
         self.start = np.asarray(start, dtype=np.float64)
+        self.rotation = None if rotation is None else np.asarray(rotation, dtype=np.float64)
 
     def mesh(self):
         """Its closed triangle mesh (``trimesh.Trimesh``), in its own frame."""

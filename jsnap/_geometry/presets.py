@@ -9,6 +9,11 @@ apart: it keeps its own contact sampling along its section (``jsnap._build.sampl
   hooks pointing inwards, their inner faces ``gap`` apart, rising from ``z = 0`` out of a base
   block ``base_thickness`` thick whose bottom face is fixed; the rigid part is a block exactly
   ``gap`` wide that squeezes between the hooks;
+* ``box_lid`` — a lid with four hooks (the switch box of the paper's Fig. 1): a plate
+  ``lid_thickness`` thick whose outer face is fixed (the robot's flat platen holds it), two
+  pairs of the clip's arms standing on it, hooks inwards, ``gap`` apart across the box and
+  ``spacing`` apart along it; the rigid part is the box's rim, a block ``gap`` wide, turned by
+  ``tilt`` about the x axis so that the hooks at ``-y`` engage before those at ``+y``;
 * ``cable_latch`` — the flexible latch of a cable plug (the LAN plug of the paper's Fig. 1): an
   arm hanging from a bridge at the top of the plug body, ``gap`` away from it, with a catch
   (the cantilever's hook section) ``catch_position`` below its root; the plug body's back face is
@@ -17,9 +22,9 @@ apart: it keeps its own contact sampling along its section (``jsnap._build.sampl
   back behind it. The contact moves away from the root as the lip travels, so the arm grows
   softer under it (a cantilever loaded at a travelling point, not at its tip).
 
-The clip and the latch are tet-meshed with gmsh (the mesher the parts from files use) from
-their exact CAD solids, the section polygon extruded over the width, finer along the hooks' (catch's) edges
-(see :func:`_hook_size`). Units: mm, degrees.
+The clip, the lid and the latch are tet-meshed with gmsh (the mesher the parts from files use)
+from their exact CAD solids, section polygons extruded over y (and fused), finer along the
+hooks' (catch's) edges (see :func:`_hook_size`). Units: mm, degrees.
 """
 
 from __future__ import annotations
@@ -37,6 +42,9 @@ from jsnap._geometry.plug import Plug
 __all__ = [
     "PRESETS",
     "Preset",
+    "box_lid_pieces",
+    "box_lid_stroke",
+    "box_lid_tilt",
     "clip_section",
     "connector_features",
     "default_rigid",
@@ -46,7 +54,12 @@ __all__ = [
     "latch_tip_deflection",
 ]
 
-PRESETS = ("cantilever", "two_hook_clip", "cable_latch")  # the keys of jsnap._geometry.scene.CONNECTORS
+PRESETS = (
+    "cantilever",
+    "two_hook_clip",
+    "box_lid",
+    "cable_latch",
+)  # the keys of jsnap._geometry.scene.CONNECTORS
 
 
 @dataclass(frozen=True, eq=False)
@@ -106,6 +119,18 @@ def connector_features(kind: str, c: Mapping) -> dict[str, float]:
             )
         # The hooks' lips are meshed finer on their own (see generate).
         return {"thickness": c["thickness"], "width": c["width"], "base_thickness": c["base_thickness"]}
+    if kind == "box_lid":
+        if not c["gap"] > 2 * c["undercut"]:
+            raise ValueError(
+                f"connector.gap = {c['gap']!r}: facing hooks' lips would touch or overlap; the gap must be "
+                f"more than twice connector.undercut ({2 * c['undercut']:g} mm)"
+            )
+        if not c["spacing"] > c["width"]:
+            raise ValueError(
+                f"connector.spacing = {c['spacing']!r}: the two hooks on a side would overlap; the spacing "
+                f"of their centres must be more than connector.width ({c['width']:g} mm)"
+            )
+        return {"thickness": c["thickness"], "width": c["width"], "lid_thickness": c["lid_thickness"]}
     if kind == "cable_latch":
         if not hook.z_top < c["length"]:
             raise ValueError(
@@ -149,6 +174,32 @@ def clip_section(c: Mapping) -> np.ndarray:
     return np.concatenate([[[-X, -tb], [X, -tb], [X, 0.0]], right, left, [[-X, 0.0]]])
 
 
+def box_lid_pieces(c: Mapping) -> list[tuple[np.ndarray, float, float]]:
+    """The box lid as sections (x, z), counter-clockwise, each extruded over ``y in [y0, y1]``:
+    ``[(section, y0, y1), ...]``, mm. The lid plate ``x in [-X, X]``, ``y in [-Y, Y]``,
+    ``z in [-lid_thickness, 0]`` and four arms of the clip's section standing on it, their inner
+    faces at ``x = +-gap/2``, centred at ``y = +-spacing/2``."""
+    hook = hook_of(c)
+    a, h, b, m = 0.5 * c["gap"], c["thickness"], c["width"], c["lid_margin"]
+    X, Y, T = a + h + m, 0.5 * c["spacing"] + 0.5 * b + m, c["lid_thickness"]
+    plate = np.array([[-X, -T], [X, -T], [X, 0.0], [-X, 0.0]])
+    right = _mirror_hook(hook, a)
+    left = right[::-1] * [-1.0, 1.0]
+    arms = [
+        (arm, yc - 0.5 * b, yc + 0.5 * b)
+        for yc in (-0.5 * c["spacing"], 0.5 * c["spacing"])
+        for arm in (right, left)
+    ]
+    return [(plate, -Y, Y), *arms]
+
+
+def box_lid_tilt(c: Mapping) -> np.ndarray:
+    """The box's orientation, a unit quaternion (w, x, y, z): turned by ``tilt`` about the x
+    axis, so that its -y end comes down first."""
+    half = 0.5 * np.radians(c["tilt"])
+    return np.array([np.cos(half), np.sin(half), 0.0, 0.0])
+
+
 def latch_section(c: Mapping) -> np.ndarray:
     """(12, 2) section polygon (x, z) of the cable latch, counter-clockwise, mm: the arm
     ``x in [0, h]`` from its free end ``z = 0`` up to its root ``z = length``, the catch on its
@@ -173,11 +224,11 @@ def latch_tip_deflection(c: Mapping) -> float:
     return c["undercut"] * (3.0 * L - arm) / (2.0 * arm)
 
 
-def _gmsh_mesh(section: np.ndarray, *, width: float, size: float, fine: float, fine_box) -> tuple:
-    """Tetrahedra (points (n, 3), cells (m, 4)) of the section polygon (x, z) extruded over
-    ``y in [-width/2, width/2]``; elements of ``size``, ``fine`` on the edges that lie in
-    ``fine_box`` = ((x0, z0), (x1, z1)) (the hooks), growing to ``size`` within ``2 size`` of
-    them."""
+def _gmsh_mesh(pieces, *, size: float, fine: float, fine_box) -> tuple:
+    """Tetrahedra (points (n, 3), cells (m, 4)) of the union of section polygons (x, z)
+    extruded over y: ``pieces`` = [(section (k, 2), y0, y1), ...]; elements of ``size``,
+    ``fine`` on the edges that lie in ``fine_box`` = ((x0, z0), (x1, z1)) (the hooks), growing
+    to ``size`` within ``2 size`` of them."""
     import gmsh
 
     initialised = gmsh.isInitialized()
@@ -187,12 +238,17 @@ def _gmsh_mesh(section: np.ndarray, *, width: float, size: float, fine: float, f
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.model.add("jsnap-preset")
         occ = gmsh.model.occ
-        pts = [occ.addPoint(x, -0.5 * width, z) for x, z in section]
-        lines = [occ.addLine(pts[i], pts[(i + 1) % len(pts)]) for i in range(len(pts))]
-        face = occ.addPlaneSurface([occ.addCurveLoop(lines)])
-        occ.extrude([(2, face)], 0.0, width, 0.0)
+        solids = []
+        for section, y0, y1 in pieces:
+            pts = [occ.addPoint(x, y0, z) for x, z in section]
+            lines = [occ.addLine(pts[i], pts[(i + 1) % len(pts)]) for i in range(len(pts))]
+            face = occ.addPlaneSurface([occ.addCurveLoop(lines)])
+            solids += [e for e in occ.extrude([(2, face)], 0.0, y1 - y0, 0.0) if e[0] == 3]
+        if len(solids) > 1:
+            # One solid whose pieces share their nodes where they touch.
+            occ.fuse(solids[:1], solids[1:])
         occ.synchronize()
-        big = 10.0 * float(np.max(np.abs(section))) + 10.0
+        big = 10.0 * max(float(np.max(np.abs(np.asarray(p[0])))) + abs(p[1]) + abs(p[2]) for p in pieces) + 10.0
         eps = 1e-6 * big
         (x0, z0), (x1, z1) = np.clip(np.asarray(fine_box, np.float64), -big, big)
         hooks = gmsh.model.getEntitiesInBoundingBox(x0 - eps, -big, z0 - eps, x1 + eps, big, z1 + eps, dim=1)
@@ -268,8 +324,24 @@ def default_rigid(kind: str, c: Mapping, plug: Mapping) -> Plug:
         x = hook.h_tip + 0.5 * thick
     else:
         thick, x = plug["thickness"] or c["gap"], 0.0
-    half = np.array([thick, plug["width"] or hook.width + 1.0, plug["height"]]) / 2
-    return Plug(half, plug["fillet"], [x, 0.0, hook.z_top + plug["clearance"] + half[2]])
+    depth = hook.width + (c["spacing"] if kind == "box_lid" else 0.0) + 1.0
+    half = np.array([thick, plug["width"] or depth, plug["height"]]) / 2
+    if kind != "box_lid":
+        return Plug(half, plug["fillet"], [x, 0.0, hook.z_top + plug["clearance"] + half[2]])
+    # The tilted box's lowest point (on its -y bottom edge's fillet) `clearance` above the hooks.
+    r, (ct, st) = plug["fillet"], (np.cos(np.radians(c["tilt"])), np.sin(np.radians(c["tilt"])))
+    below = (half[2] - r) * ct + (half[1] - r) * st + r
+    return Plug(half, r, [x, 0.0, hook.z_top + plug["clearance"] + below], rotation=box_lid_tilt(c))
+
+
+def box_lid_stroke(c: Mapping, rigid: Plug) -> float:
+    """Travel along -z that latches every hook of the box lid: the tilted box's top face passes
+    0.3 mm below the retention faces at the far edge of the hooks it reaches last, mm."""
+    th = np.radians(c["tilt"])
+    y_far = 0.5 * (c["spacing"] + c["width"])
+    along = (y_far + rigid.half[2] * np.sin(th)) / np.cos(th)  # in the box's own frame
+    top = rigid.start[2] + along * np.sin(th) + rigid.half[2] * np.cos(th)
+    return float(top - (c["length"] - 0.3))
 
 
 def generate(kind: str, c: Mapping, plug: Mapping, mesh_size: float) -> Preset:
@@ -283,11 +355,17 @@ def generate(kind: str, c: Mapping, plug: Mapping, mesh_size: float) -> Preset:
     fine = _hook_size(hook, mesh_size)
     if kind == "two_hook_clip":
         hooks = ((-np.inf, hook.length), (np.inf, np.inf))
-        points, cells = _gmsh_mesh(clip_section(c), width=hook.width, size=mesh_size, fine=fine, fine_box=hooks)
+        half = 0.5 * hook.width
+        points, cells = _gmsh_mesh([(clip_section(c), -half, half)], size=mesh_size, fine=fine, fine_box=hooks)
         return Preset(_finish(points, cells, -c["base_thickness"]), rigid, stroke)
+    if kind == "box_lid":
+        hooks = ((-np.inf, hook.length), (np.inf, np.inf))
+        points, cells = _gmsh_mesh(box_lid_pieces(c), size=mesh_size, fine=fine, fine_box=hooks)
+        return Preset(_finish(points, cells, -c["lid_thickness"]), rigid, box_lid_stroke(c, rigid))
     if kind == "cable_latch":
         # Finer on the catch's edges only (the arm's outer face continues above and below it).
         box = ((hook.thickness, hook.length), (np.inf, hook.z_top))
-        points, cells = _gmsh_mesh(latch_section(c), width=hook.width, size=mesh_size, fine=fine, fine_box=box)
+        half = 0.5 * hook.width
+        points, cells = _gmsh_mesh([(latch_section(c), -half, half)], size=mesh_size, fine=fine, fine_box=box)
         return Preset(_finish(points, cells, -c["gap"] - c["body_thickness"], axis=0), rigid, stroke)
     raise ValueError(f"connector.type = {kind!r}: must be one of {', '.join(PRESETS)}")

@@ -30,7 +30,7 @@ import numpy as np
 from jsnap._geometry.cantilever import Cantilever
 from jsnap._geometry.errors import SceneError, SceneWarning
 from jsnap._geometry.motion import latching_stroke, read_pose_csv
-from jsnap._geometry.presets import connector_features, default_rigid, hook_of
+from jsnap._geometry.presets import box_lid_stroke, connector_features, default_rigid, hook_of
 
 __all__ = [
     "MIN_STEPS",
@@ -233,6 +233,31 @@ CONNECTORS: dict[str, dict[str, Key]] = {
         },
         "length thickness width undercut lead_angle return_angle flat gap base_thickness base_margin",
     ),
+    "box_lid": _ordered(
+        {
+            **_hook_keys("arm", "x"),
+            "width": _pos("mm", doc="b, width of each arm (y)"),
+            "gap": _pos("mm", 8.0, "distance between facing arms' inner faces (x): the box's width"),
+            "spacing": _pos("mm", 8.0, "distance between the centres of the two arms on a side (y)"),
+            "lid_thickness": _pos(
+                "mm", 1.5, "the lid plate's thickness under the arms (its outer face is fixed)"
+            ),
+            "lid_margin": _nonneg("mm", 1.0, "how far the lid reaches beyond the arms (x and y)"),
+            "tilt": Key(
+                float,
+                3.0,
+                "deg",
+                0.0,
+                10.0,
+                False,
+                False,
+                doc="the box's tilt about the x axis: its -y end comes down first, so the hooks at -y "
+                "engage before those at +y",
+            ),
+        },
+        "length thickness width undercut lead_angle return_angle flat gap spacing lid_thickness lid_margin "
+        "tilt",
+    ),
     "cable_latch": _ordered(
         {
             "length": _pos("mm", 10.0, "L, latch arm length from its free end (z = 0) up to its root (z = L)"),
@@ -276,7 +301,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
             str,
             choices=tuple(CONNECTORS),
             doc="connector preset: the canonical cantilever hook, two hooks facing each other on a "
-            "base block (two_hook_clip), or a cable plug's latch (cable_latch)",
+            "base block (two_hook_clip), a lid with four hooks pressed onto a box (box_lid), or a "
+            "cable plug's latch (cable_latch)",
         ),
     },
     "part": {
@@ -630,7 +656,9 @@ def motion_stroke(scene: Scene, geom: Cantilever | None) -> float:
     stroke = scene["motion"]["stroke"]
     if stroke is not None:
         return stroke
-    p = scene["plug"]
+    p, c = scene["plug"], scene["connector"]
+    if c and c["type"] == "box_lid":
+        return box_lid_stroke(c, default_rigid("box_lid", c, p))
     return latching_stroke(p["height"], p["clearance"], geom.z_top - geom.length)
 
 
