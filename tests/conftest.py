@@ -24,6 +24,24 @@ os.environ.setdefault("JSNAP_XLA_CACHE", "0")
 ARM = dict(L=10.0, h=1.2, b=4.0)
 
 
+# The modules with the longest tests, longest first: the suite runs on two workers, one test
+# module each at a time (pytest-xdist, --dist loadfile: a module's fixtures are built once), and
+# starting the long ones first keeps one worker from finishing long after the other.
+_LONGEST_FIRST = (
+    "test_bench.py",
+    "test_hook_family.py",
+    "test_parts_from_files.py",
+    "test_presets.py",
+    "test_docs.py",
+    "test_notebook.py",
+)
+
+
+def pytest_collection_modifyitems(items):
+    rank = {name: i for i, name in enumerate(_LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
+
+
 @pytest.fixture(scope="module", autouse=True)
 def _release_compiled_programs():
     """Drop JAX's compiled programs after each test module: the suite compiles hundreds, and each
