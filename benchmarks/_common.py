@@ -11,6 +11,7 @@ rollouts), and :func:`load_scene` applies changes that may include internal keys
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import time
@@ -170,3 +171,47 @@ def plot_curves(ax, curves, refs) -> dict:
             label = f"CalculiX, mu {mu:g}"
             ax.plot(d["plug_travel_mm"], d["insertion_force_N"], ".", color=colours[mu], ms=3, label=label)
     return colours
+
+
+def timing_row(model, runs: int) -> dict:
+    """Steps/s of ``model``'s compiled rollout: the first call and the median of ``runs`` more,
+    with the load average."""
+    prepared = jsnap.prepare(model)
+    _, first, times = scan_timing(model, prepared, runs)
+    steps = model.motion.shape[0] - 1
+    return {
+        "dof": int(model.n_dof),
+        "steps": steps,
+        "first_call_s": first,
+        "median_s": float(np.median(times)),
+        "steps_per_second": steps / float(np.median(times)),
+        "load_average": os.getloadavg()[0],
+    }
+
+
+def speed(scene, runs: int, full_runs: int | None = None) -> dict:
+    """Steps/s of the compiled rollout (:func:`timing_row`): the shipped reduced model (float32)
+    and the full model in float32 and float64, built from ``scene`` and timed in this process one
+    after the other (``runs`` timed calls each after the first, ``full_runs`` for the full model:
+    default ``runs``)."""
+    rows = {}
+    for name, changes in (
+        ("reduced_float32", {}),
+        ("full_float32", {"solver.method": "full", "solver.dtype": "float32"}),
+        ("full_float64", {"solver.method": "full", "solver.dtype": "float64"}),
+    ):
+        model = jsnap.build(load_scene(changes, scene))
+        rows[name] = timing_row(model, runs if name.startswith("reduced") or full_runs is None else full_runs)
+        print(name, rows[name], flush=True)
+    return rows
+
+
+def write_result(out: dict, path: Path) -> None:
+    """``out`` as JSON at ``path``, stamped with the load average, the CPUs, the date and the
+    code version."""
+    out["load_average_after"] = ", ".join(f"{x:.2f}" for x in os.getloadavg())
+    out["cpus"] = os.cpu_count()
+    out["date"] = time.strftime("%Y-%m-%d %H:%M")
+    out["code"] = code_version()
+    path.parent.mkdir(exist_ok=True)
+    path.write_text(json.dumps(out, indent=1) + "\n")

@@ -27,12 +27,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import time
 from pathlib import Path
 
 import numpy as np
-from _common import calculix_row, code_version, curve_stats, load_scene, plot_curves, scan_timing
+from _common import calculix_row, curve_stats, load_scene, plot_curves, speed, write_result
 
 import jsnap
 from jsnap._apps.simulate import arm_box, arm_elements, design_guide_force, design_guide_strain
@@ -127,31 +125,6 @@ def guide_gap(scene, full_model, full) -> dict:
     }
 
 
-def speed(scene, runs: int) -> dict:
-    """Steps/s of the compiled rollout: the shipped reduced model (float32) and the full model in
-    float32 and float64, built from ``scene`` and timed in this process one after the other."""
-    rows = {}
-    for name, changes in (
-        ("reduced_float32", {}),
-        ("full_float32", {"solver.method": "full", "solver.dtype": "float32"}),
-        ("full_float64", {"solver.method": "full", "solver.dtype": "float64"}),
-    ):
-        model = jsnap.build(load_scene(changes, scene))
-        prepared = jsnap.prepare(model)
-        _, first, times = scan_timing(model, prepared, runs)
-        steps = model.motion.shape[0] - 1
-        rows[name] = {
-            "dof": int(model.n_dof),
-            "steps": steps,
-            "first_call_s": first,
-            "median_s": float(np.median(times)),
-            "steps_per_second": steps / float(np.median(times)),
-            "load_average": os.getloadavg()[0],
-        }
-        print(name, rows[name], flush=True)
-    return rows
-
-
 def main(argv=None) -> int:
     argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args(argv)
     base = jsnap.load_scene(SCENE)
@@ -182,12 +155,7 @@ def main(argv=None) -> int:
             acc["calculix"] = calculix_row(REFS[mu], travel, {"full_float64": Ff, "reduced_float32": Fr})
         print(f"mu {mu:g}:", json.dumps({k: v for k, v in acc.items() if k != "curves"}), flush=True)
     out["speed"] = speed(base, 5)
-    out["load_average_after"] = ", ".join(f"{x:.2f}" for x in os.getloadavg())
-    out["cpus"] = os.cpu_count()
-    out["date"] = time.strftime("%Y-%m-%d %H:%M")
-    out["code"] = code_version()
-    OUT.mkdir(exist_ok=True)
-    (OUT / "cable_latch.json").write_text(json.dumps(out, indent=1) + "\n")
+    write_result(out, OUT / "cable_latch.json")
     plot(out, curves)
     return 0
 

@@ -159,6 +159,25 @@ def _two_hook_clip(d):
     return text
 
 
+def _box_lid(d):
+    acc = d["accuracy"]
+    tilted = next(v for k, v in acc.items() if not k.startswith("tilt 0 ") and k.endswith("mu 0.3"))
+    red = tilted["reduced_float32_1.2mm"]
+    pairs = tilted["pairs_shipped"]
+    delay = pairs["plus_y"]["first_contact_travel_mm"] - pairs["minus_y"]["first_contact_travel_mm"]
+    rate = d["speed"]["shipped_reduced_float32"]["steps_per_second"]
+    text = (
+        f"box lid, tilted, mu 0.3: shipped peak {tilted['shipped_float32']['peak_N']:.3g} N, {rate:.0f} "
+        f"steps/s; reduced vs full (1.2 mm) RMSE {100 * red['rmse_of_full_peak']:.2f} % of the full model's "
+        f"peak; the +y pair engages {delay:.2f} mm after the -y pair "
+        f"(slope {tilted['predicted_delay_mm']:.2f} mm)"
+    )
+    ccx = acc.get("tilt 0 mu 0", {}).get("calculix")
+    if ccx:
+        text += f"; untilted shipped mu 0 peak {ccx['shipped_float32']['peak_over_reference']:.3f} x CalculiX's"
+    return text
+
+
 _LATCH_FACTORS = (("f_3d_beam", "beam theory"), ("f_root", "root gives way"), ("f_ramp", "ramp turned"))
 
 
@@ -440,6 +459,12 @@ BENCHMARKS = [
         "two-hook clip preset: reduced vs full vs CalculiX, contact solvers on its squeeze",
         True,
         _two_hook_clip,
+    ),
+    Bench(
+        "box_lid",
+        "box lid preset (four hooks, tilted box): reduced vs full vs CalculiX, engagement order, speed",
+        False,
+        _box_lid,
     ),
     Bench(
         "cable_latch",

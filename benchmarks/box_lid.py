@@ -1,0 +1,225 @@
+"""The box lid preset (jsnap/scenes/box_lid.toml): its reduced model against its full model,
+both against CalculiX and the design guide, the tilt's sequential engagement, and their speed
+side by side.
+
+    python benchmarks/box_lid.py
+
+1. Accuracy, for the shipped tilted box (3 degrees) and the untilted one, frictionless and at
+   mu = 0.3. The full model does not fit in memory on the shipped 0.8 mm mesh (36801 dof: about
+   60 GiB of dense operators), so the reduced model is checked against it on a 1.2 mm mesh
+   (the full model in float64, its contact solved by APGD to the tolerance with up to 5000
+   iterations; the reduced model in float32 as shipped): peak insertion force, travel at the
+   peak, RMSE of the insertion force in % of the full model's peak over the whole motion and
+   over the rise. The shipped reduced model (0.8 mm, float32) and the 1.2 mm full model against
+   CalculiX's linear-geometry curves of the same lid (jsnap/data/calculix-box_lid/), over the
+   travel CalculiX covers, where it has the case.
+2. The tilt: the travel at which each pair of hooks (-y, +y) first carries force and reaches
+   its peak, against the delay spacing * tan(tilt) the box's slope predicts; the base's moment
+   about x at the peak.
+3. The design guide (untilted: four hooks deflected at once) against the full model's peak.
+4. Speed: steps/s of the compiled rollout (median of the timed calls) of the reduced model and
+   of the full model (float32 and float64) on the 1.2 mm mesh, and of the shipped reduced
+   model, in one process, with the load average.
+
+Writes benchmarks/results/box_lid.{json,png}.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+from _common import calculix_row, curve_stats, load_scene, speed, timing_row, write_result
+
+import jsnap
+from jsnap._apps.simulate import design_guide_force
+from jsnap._geometry.scene import default_scene_path
+
+jsnap.configure_xla_cpu()
+
+OUT = Path(__file__).parent / "results"
+SCENE = default_scene_path().parent / "box_lid.toml"
+DATA = Path(jsnap.__file__).parent / "data" / "calculix-box_lid"
+
+
+def _finest(stem: str) -> Path | None:
+    """The CalculiX curve ``<stem>_m<level>_curve.csv`` of the finest mesh that ran, or None."""
+    for level in (3, 2, 1):
+        path = DATA / f"{stem}_m{level}_curve.csv"
+        if path.is_file():
+            return path
+    return None
+
+
+# (tilt, friction): the CalculiX curve of that case on the finest mesh CalculiX ran it on.
+REFS = {
+    (0.0, 0.0): _finest("lid_mu0_lin"),
+    (0.0, 0.3): _finest("lid_mu03_lin"),
+    (3.0, 0.0): _finest("lid_tilt3_mu0_lin"),
+}
+# The full model's contact: APGD to the scene's tolerance, with room to get there.
+FULL_CONTACT = {"contact.solver": "apgd", "contact.iterations": 5000}
+# The finest mesh whose full model fits in this machine's memory (module docstring).
+COARSE = {"solver.mesh_size": 1.2}
+
+
+def pairs(model, res) -> dict:
+    """Each pair of hooks' (-y, +y) push along the motion, its first travel and its peak, and
+    the base's moment about x at the peak of the total."""
+    travel = np.asarray(res.travel)
+    rest = np.asarray(model.samples.rest)[np.asarray(res.contact_index)]
+    push = -(np.asarray(res.contact_force)[..., 2] * np.asarray(res.contact_active))  # on the hooks, down
+    out = {}
+    for name, side in (("minus_y", rest[..., 1] < 0), ("plus_y", rest[..., 1] > 0)):
+        F = np.where(side, push, 0.0).sum(axis=1)
+        out[name] = {
+            "first_contact_travel_mm": float(travel[np.argmax(F > 1e-6)]),
+            "peak_N": float(F.max()),
+            "travel_at_peak_mm": float(travel[np.argmax(F)]),
+        }
+    k = int(np.argmax(np.asarray(res.insertion_force)))
+    out["base_moment_x_at_peak_Nmm"] = float(np.asarray(res.base_moment)[k, 0])
+    return out
+
+
+def compare(acc: dict, tilt: float, mu: float) -> None:
+    """``acc["calculix"]``: the case's curves against CalculiX's, where CalculiX ran the case."""
+    ref = REFS.get((tilt, mu))
+    if ref is not None:
+        travel, Ff, Fs = (np.asarray(acc["curves"][k]) for k in ("travel_mm", "full_N", "shipped_N"))
+        acc["calculix"] = calculix_row(ref, travel, {"full_float64_1.2mm": Ff, "shipped_float32": Fs})
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--compare-only",
+        action="store_true",
+        help="only compare the curves in results/box_lid.json with the CalculiX curves now there; replot",
+    )
+    if parser.parse_args(argv).compare_only:
+        out = json.loads((OUT / "box_lid.json").read_text())
+        curves = {}
+        for key, acc in out["accuracy"].items():
+            tilt, mu = float(key.split()[1]), float(key.split()[3])
+            compare(acc, tilt, mu)
+            curves[tilt, mu] = tuple(
+                np.asarray(acc["curves"][k]) for k in ("travel_mm", "full_N", "reduced_N", "shipped_N")
+            )
+        (OUT / "box_lid.json").write_text(json.dumps(out, indent=1) + "\n")
+        plot(out, curves)
+        return 0
+    base = jsnap.load_scene(SCENE)
+    c = base["connector"]
+    out = {"scene": str(SCENE.name), "mesh_size": base["solver"]["mesh_size"], "accuracy": {}}
+    curves = {}
+    for tilt in (c["tilt"], 0.0):
+        for mu in (0.0, 0.3):
+            scene = base.replace({"connector.tilt": tilt, "contact.friction": mu})
+            coarse = load_scene(COARSE, scene)
+            full_model = jsnap.build(load_scene({"solver.method": "full", **FULL_CONTACT}, coarse))
+            full = jsnap.rollout(full_model, dtype="float64")
+            red_model = jsnap.build(coarse)
+            red = jsnap.rollout(red_model)
+            shipped_model = jsnap.build(scene)
+            shipped = jsnap.rollout(shipped_model)
+            travel = np.asarray(full.travel)
+            Ff, Fr, Fs = (np.asarray(r.insertion_force) for r in (full, red, shipped))
+            curves[tilt, mu] = (travel, Ff, Fr, Fs)
+            acc = out["accuracy"][f"tilt {tilt:g} mu {mu:g}"] = {
+                "full_dof_1.2mm": full_model.full_dof,
+                "full_dof_shipped": shipped_model.full_dof,
+                "reduced_orders_1.2mm": list(red_model.part.orders),
+                "reduced_orders_shipped": list(shipped_model.part.orders),
+                "full_float64_1.2mm": {**curve_stats(Ff, travel, Ff), "ok": bool(full.ok)},
+                "reduced_float32_1.2mm": {**curve_stats(Fr, travel, Ff), "ok": bool(red.ok)},
+                "shipped_float32": {**curve_stats(Fs, travel, Ff), "ok": bool(shipped.ok)},
+                "pairs_full_1.2mm": pairs(full_model, full),
+                "pairs_shipped": pairs(shipped_model, shipped),
+                "curves": {
+                    "travel_mm": travel.tolist(),
+                    "full_N": Ff.tolist(),
+                    "reduced_N": Fr.tolist(),
+                    "shipped_N": Fs.tolist(),
+                },
+            }
+            if tilt:
+                acc["predicted_delay_mm"] = c["spacing"] * float(np.tan(np.radians(tilt)))
+            else:
+                acc["design_guide_mating_force_N"] = design_guide_force(scene)
+            compare(acc, tilt, mu)
+            print(
+                f"tilt {tilt:g} mu {mu:g}:",
+                json.dumps({k: v for k, v in acc.items() if k != "curves"}),
+                flush=True,
+            )
+    out["speed"] = speed(load_scene(COARSE, base), 5, full_runs=1)
+    out["speed"]["shipped_reduced_float32"] = timing_row(jsnap.build(base), 5)
+    write_result(out, OUT / "box_lid.json")
+    plot(out, curves)
+    return 0
+
+
+def plot(out, curves):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 3, figsize=(17, 4.8), gridspec_kw={"width_ratios": [2, 2, 1]})
+    for a, tilt in zip(ax[:2], sorted({t for t, _ in curves}, reverse=True), strict=True):
+        for mu in (0.0, 0.3):
+            travel, Ff, Fr, Fs = curves[tilt, mu]
+            colour = a.plot(travel, Fs, label=f"shipped: reduced float32, 0.8 mm, mu {mu:g}")[0].get_color()
+            a.plot(travel, Ff, "--", color=colour, lw=1.0, label=f"full float64, 1.2 mm, mu {mu:g}")
+            a.plot(travel, Fr, ":", color=colour, lw=1.0, label=f"reduced float32, 1.2 mm, mu {mu:g}")
+            ref = REFS.get((tilt, mu))
+            if ref is not None:
+                d = np.genfromtxt(ref, delimiter=",", names=True)
+                a.plot(
+                    d["plug_travel_mm"],
+                    d["insertion_force_N"],
+                    ".",
+                    color=colour,
+                    ms=3,
+                    label=f"CalculiX, mu {mu:g}",
+                )
+        if tilt:
+            acc = out["accuracy"][f"tilt {tilt:g} mu 0"]["pairs_shipped"]
+            for side, ls in (("minus_y", ":"), ("plus_y", "-.")):
+                a.axvline(
+                    acc[side]["first_contact_travel_mm"],
+                    color="0.5",
+                    ls=ls,
+                    lw=0.8,
+                    label=f"{side} pair's first contact",
+                )
+        else:
+            guide = out["accuracy"]["tilt 0 mu 0"]["design_guide_mating_force_N"]
+            a.axhline(guide, color="C0", ls=":", lw=0.8, label="design guide, mu 0 (four hooks)")
+        a.axhline(0, color="0.6", lw=0.5)
+        a.set(
+            xlabel="travel of the box (mm)",
+            ylabel="insertion force (N)",
+            title=f"box lid, box tilted {tilt:g} deg",
+        )
+        a.legend(fontsize=7)
+    rows = out["speed"]
+    names = list(rows)
+    ax[2].bar(names, [rows[n]["steps_per_second"] for n in names])
+    ax[2].axhline(1000, color="k", ls="--", lw=0.8, label="1 kHz")
+    ax[2].set_yscale("log")
+    ax[2].set(
+        ylabel="steps/s (compiled rollout)", title=f"speed, load average {rows[names[0]]['load_average']:.1f}"
+    )
+    labels = [n.replace("_float", "\nfloat") + f"\n{rows[n]['dof']} dof" for n in names]
+    ax[2].set_xticks(range(len(names)), labels, fontsize=7)
+    ax[2].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(OUT / "box_lid.png", dpi=110)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
