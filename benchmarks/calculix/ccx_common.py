@@ -294,18 +294,23 @@ def parse_dat_load(path):
     return {int(r.split()[0]): _vec(r.split()[1:4]) for r in body.splitlines()}
 
 
-def mesh_nodes(mesh_path, nset):
-    """{node: (x, z)} of a node set of a mesh file (mesh_m<level>.inp)."""
+def mesh_nodes_xyz(mesh_path, nset):
+    """{node: (x, y, z) array} of a node set of a mesh file (mesh_m<level>.inp)."""
     txt = Path(mesh_path).read_text()
     body = re.search(rf"\*NSET, NSET={nset}\n((?:[\d, ]+\n)+)", txt).group(1)
     ids = {int(v) for v in body.replace("\n", "").split(",") if v.strip()}
     nodes = re.search(r"\*NODE, NSET=NALL\n((?:.+\n)+?)\*", txt).group(1)
     out = {}
     for r in nodes.splitlines():
-        n, x, _, z = r.split(",")
+        n, x, y, z = r.split(",")
         if int(n) in ids:
-            out[int(n)] = (float(x), float(z))
+            out[int(n)] = np.array([float(x), float(y), float(z)])
     return out
+
+
+def mesh_nodes(mesh_path, nset):
+    """{node: (x, z)} of a node set of a mesh file (mesh_m<level>.inp)."""
+    return {n: (float(p[0]), float(p[2])) for n, p in mesh_nodes_xyz(mesh_path, nset).items()}
 
 
 def monitors_of(mesh_path):
