@@ -215,3 +215,18 @@ def write_result(out: dict, path: Path) -> None:
     out["code"] = code_version()
     path.parent.mkdir(exist_ok=True)
     path.write_text(json.dumps(out, indent=1) + "\n")
+
+
+def plot_speed(ax, rows: dict) -> None:
+    """On ``ax``: the steps/s of each timing row (name -> :func:`timing_row`) as bars on a log
+    scale, against 1 kHz, titled with the first row's load average."""
+    names = list(rows)
+    ax.bar(names, [rows[n]["steps_per_second"] for n in names])
+    ax.axhline(1000, color="k", ls="--", lw=0.8, label="1 kHz")
+    ax.set_yscale("log")
+    ax.set(
+        ylabel="steps/s (compiled rollout)", title=f"speed, load average {rows[names[0]]['load_average']:.1f}"
+    )
+    labels = [n.replace("_float", "\nfloat") + f"\n{rows[n]['dof']} dof" for n in names]
+    ax.set_xticks(range(len(names)), labels, fontsize=7)
+    ax.legend(fontsize=8)

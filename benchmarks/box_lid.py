@@ -31,7 +31,7 @@ import json
 from pathlib import Path
 
 import numpy as np
-from _common import calculix_row, curve_stats, load_scene, speed, timing_row, write_result
+from _common import calculix_row, curve_stats, load_scene, plot_speed, speed, timing_row, write_result
 
 import jsnap
 from jsnap._apps.simulate import design_guide_force
@@ -206,17 +206,7 @@ def plot(out, curves):
             title=f"box lid, box tilted {tilt:g} deg",
         )
         a.legend(fontsize=7)
-    rows = out["speed"]
-    names = list(rows)
-    ax[2].bar(names, [rows[n]["steps_per_second"] for n in names])
-    ax[2].axhline(1000, color="k", ls="--", lw=0.8, label="1 kHz")
-    ax[2].set_yscale("log")
-    ax[2].set(
-        ylabel="steps/s (compiled rollout)", title=f"speed, load average {rows[names[0]]['load_average']:.1f}"
-    )
-    labels = [n.replace("_float", "\nfloat") + f"\n{rows[n]['dof']} dof" for n in names]
-    ax[2].set_xticks(range(len(names)), labels, fontsize=7)
-    ax[2].legend(fontsize=8)
+    plot_speed(ax[2], out["speed"])
     fig.tight_layout()
     fig.savefig(OUT / "box_lid.png", dpi=110)
 

@@ -30,7 +30,7 @@ import json
 from pathlib import Path
 
 import numpy as np
-from _common import calculix_row, curve_stats, load_scene, plot_curves, speed, write_result
+from _common import calculix_row, curve_stats, load_scene, plot_curves, plot_speed, speed, write_result
 
 import jsnap
 from jsnap._apps.simulate import arm_box, arm_elements, design_guide_force, design_guide_strain
@@ -176,16 +176,7 @@ def plot(out, curves):
         xlabel="travel of the lip (mm)", ylabel="insertion force (N)", title="cable latch: insertion force"
     )
     ax[0].legend(fontsize=7)
-    rows = out["speed"]
-    names = list(rows)
-    ax[1].bar(names, [rows[n]["steps_per_second"] for n in names])
-    ax[1].axhline(1000, color="k", ls="--", lw=0.8, label="1 kHz")
-    ax[1].set_yscale("log")
-    ax[1].set(
-        ylabel="steps/s (compiled rollout)", title=f"speed, load average {rows[names[0]]['load_average']:.1f}"
-    )
-    ax[1].set_xticks(range(len(names)), [f"{n}\n{rows[n]['dof']} dof" for n in names], fontsize=8)
-    ax[1].legend(fontsize=8)
+    plot_speed(ax[1], out["speed"])
     fig.tight_layout()
     fig.savefig(OUT / "cable_latch.png", dpi=110)
 
