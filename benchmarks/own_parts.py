@@ -65,7 +65,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     preset = jsnap.load_scene()
     geom = connector_geometry(preset)
-    stroke = motion_stroke(preset, geom)
+    stroke = motion_stroke(preset)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)

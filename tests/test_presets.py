@@ -108,7 +108,7 @@ def test_cantilever_preset_generates_todays_part():
     ref = mesh_cantilever(geom, scene["solver"]["mesh_size"])
     np.testing.assert_array_equal(preset.mesh.points, ref.points)
     np.testing.assert_array_equal(preset.mesh.cells, ref.cells)
-    assert preset.stroke == motion_stroke(scene, geom)
+    assert preset.stroke == motion_stroke(scene)
     block = preset.plug
     assert block.start[0] - block.half[0] == geom.h_tip
 

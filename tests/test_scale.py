@@ -137,7 +137,7 @@ def test_contact_points_located_as_by_brute_force(scene, asm):
     geom = connector_geometry(scene)
     plug = default_rigid("cantilever", scene["connector"], scene["plug"])
     lo, hi = plug.start - plug.half - 1.0, plug.start + plug.half + 1.0
-    lo[2] -= motion_stroke(scene, geom)
+    lo[2] -= motion_stroke(scene)
     faces = reachable_faces(asm.mesh, lo, hi)
     X, normals, *_ = section_samples(geom, lo, hi, 0.05, 1.0)
     nodes, weights, owner = locate_on_faces(asm, faces, X, normals[:, 0])

@@ -14,7 +14,7 @@ import pytest
 
 import jsnap
 from jsnap._apps.cli import main as cli_main
-from jsnap._geometry.scene import SceneError, connector_geometry, motion_stroke, with_internal
+from jsnap._geometry.scene import SceneError, motion_stroke, with_internal
 
 COARSE = {"solver.method": "full", "solver.mesh_size": 1.2, "solver.dtype": "float64", "motion.speed": 20.0}
 # CalculiX, linear geometry, frictionless, default hook (jsnap/data/calculix-cantilever).
@@ -77,7 +77,7 @@ def test_retention_force_on_withdrawal(cycle):
     the plug comes free: no force at the end."""
     scene, model, res = cycle
     F = np.asarray(res.insertion_force)
-    stroke = motion_stroke(scene, connector_geometry(scene))
+    stroke = motion_stroke(scene)
     n_in = round(stroke / scene["motion"]["speed"] / model.dt)
     assert F[n_in:].min() < -0.5
     assert np.abs(F[-3:]).max() < 1e-3  # back at the start, clear of the hook

@@ -202,7 +202,10 @@ def _geometry(scene: Scene) -> _Geometry:
             poses = straight_insertion(rigid.start, m["speed"], stroke, m["withdraw"], s["dt"])
         else:
             poses = straight_poses(rigid.start, d, m["speed"], stroke, m["withdraw"], s["dt"])
-            poses = poses[:, :3] if turned is None else np.concatenate([poses[:, :3], np.broadcast_to(turned, (poses.shape[0], 4))], axis=1)
+            if turned is None:
+                poses = poses[:, :3]
+            else:
+                poses[:, 3:] = turned
     else:
         poses = sample_poses(*keys, rigid.start, s["dt"])
         net = poses[np.argmax(np.linalg.norm(poses[:, :3] - poses[0, :3], axis=1)), :3] - poses[0, :3]

@@ -43,11 +43,11 @@ __all__ = [
     "PRESETS",
     "Preset",
     "box_lid_pieces",
-    "box_lid_stroke",
     "box_lid_tilt",
     "clip_section",
     "connector_features",
     "default_rigid",
+    "default_stroke",
     "generate",
     "hook_of",
     "latch_section",
@@ -334,9 +334,13 @@ def default_rigid(kind: str, c: Mapping, plug: Mapping) -> Plug:
     return Plug(half, r, [x, 0.0, hook.z_top + plug["clearance"] + below], rotation=box_lid_tilt(c))
 
 
-def box_lid_stroke(c: Mapping, rigid: Plug) -> float:
-    """Travel along -z that latches every hook of the box lid: the tilted box's top face passes
-    0.3 mm below the retention faces at the far edge of the hooks it reaches last, mm."""
+def default_stroke(kind: str, c: Mapping, plug: Mapping, rigid: Plug) -> float:
+    """The preset's default travel along -z, mm: the rigid part ``rigid`` (its default) latches
+    every hook, its top passing 0.3 mm below the retention faces (for the box lid, its tilted
+    top face at the far edge of the hooks it reaches last)."""
+    hook = hook_of(c)
+    if kind != "box_lid":
+        return latching_stroke(plug["height"], plug["clearance"], hook.z_top - hook.length)
     th = np.radians(c["tilt"])
     y_far = 0.5 * (c["spacing"] + c["width"])
     along = (y_far + rigid.half[2] * np.sin(th)) / np.cos(th)  # in the box's own frame
@@ -348,8 +352,8 @@ def generate(kind: str, c: Mapping, plug: Mapping, mesh_size: float) -> Preset:
     """The deformable part, default rigid part and default stroke of preset ``kind`` from its
     ``[connector]`` and ``[plug]`` tables (validated scene values), meshed at ``mesh_size``."""
     hook = hook_of(c)
-    stroke = latching_stroke(plug["height"], plug["clearance"], hook.z_top - hook.length)
     rigid = default_rigid(kind, c, plug)
+    stroke = default_stroke(kind, c, plug, rigid)
     if kind == "cantilever":
         return Preset(mesh_cantilever(hook, mesh_size), rigid, stroke)
     fine = _hook_size(hook, mesh_size)
@@ -361,7 +365,7 @@ def generate(kind: str, c: Mapping, plug: Mapping, mesh_size: float) -> Preset:
     if kind == "box_lid":
         hooks = ((-np.inf, hook.length), (np.inf, np.inf))
         points, cells = _gmsh_mesh(box_lid_pieces(c), size=mesh_size, fine=fine, fine_box=hooks)
-        return Preset(_finish(points, cells, -c["lid_thickness"]), rigid, box_lid_stroke(c, rigid))
+        return Preset(_finish(points, cells, -c["lid_thickness"]), rigid, stroke)
     if kind == "cable_latch":
         # Finer on the catch's edges only (the arm's outer face continues above and below it).
         box = ((hook.thickness, hook.length), (np.inf, hook.z_top))

@@ -29,8 +29,8 @@ import numpy as np
 
 from jsnap._geometry.cantilever import Cantilever
 from jsnap._geometry.errors import SceneError, SceneWarning
-from jsnap._geometry.motion import latching_stroke, read_pose_csv
-from jsnap._geometry.presets import box_lid_stroke, connector_features, default_rigid, hook_of
+from jsnap._geometry.motion import read_pose_csv
+from jsnap._geometry.presets import connector_features, default_rigid, default_stroke, hook_of
 
 __all__ = [
     "MIN_STEPS",
@@ -650,16 +650,14 @@ def connector_geometry(scene: Scene) -> Cantilever:
     return hook_of(scene["connector"])
 
 
-def motion_stroke(scene: Scene, geom: Cantilever | None) -> float:
+def motion_stroke(scene: Scene) -> float:
     """The stroke of the scene's straight motion, mm (``motion.stroke`` or, for the preset plug,
     the latching default)."""
     stroke = scene["motion"]["stroke"]
     if stroke is not None:
         return stroke
     p, c = scene["plug"], scene["connector"]
-    if c and c["type"] == "box_lid":
-        return box_lid_stroke(c, default_rigid("box_lid", c, p))
-    return latching_stroke(p["height"], p["clearance"], geom.z_top - geom.length)
+    return default_stroke(c["type"], c, p, default_rigid(c["type"], c, p))
 
 
 def sdf_kind(scene: Scene) -> str:
@@ -687,13 +685,13 @@ def motion_keyposes(scene: Scene):
     return None
 
 
-def motion_duration(scene: Scene, geom: Cantilever | None) -> tuple[float, str]:
+def motion_duration(scene: Scene) -> tuple[float, str]:
     """The motion's duration, s, and how it was set (for messages)."""
     m = scene["motion"]
     keys = motion_keyposes(scene)
     if keys is not None:
         return float(keys[0][-1]), f"its last pose at t = {keys[0][-1]:g} s"
-    stroke = motion_stroke(scene, geom)
+    stroke = motion_stroke(scene)
     duration = stroke / m["speed"] * (2 if m["withdraw"] else 1)
     return duration, f"{stroke:g} mm at {m['speed']:g} mm/s, {duration:g} s"
 
@@ -738,11 +736,9 @@ def _check_consistency(scene: Scene) -> None:
     plug sizes, a motion too short for the time step, elements too coarse for the features."""
     _check_files(scene)
     c = scene["connector"]
-    geom = None
     if c:
         try:
-            geom = connector_geometry(scene)
-            features = connector_features(c["type"], c)
+            features = connector_features(c["type"], c)  # the hook section's checks (hook_of) first
         except ValueError as err:
             raise SceneError(str(err)) from None
         if c["undercut"] > _MAX_DEFLECTION_RATIO * c["length"]:
@@ -768,7 +764,7 @@ def _check_consistency(scene: Scene) -> None:
             "past 2/||W||, so the unrolled iteration's derivative does not settle on the solution's"
         )
     s = scene["solver"]
-    duration, how = motion_duration(scene, geom)
+    duration, how = motion_duration(scene)
     steps = duration / s["dt"]
     if steps < MIN_STEPS:
         raise SceneError(
