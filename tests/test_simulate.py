@@ -215,6 +215,20 @@ def test_small_buffer_overflow_is_reported(default_coarse):
         res.check()
 
 
+def test_buffer_larger_than_the_candidates_holds_them_all(default_coarse):
+    """A contact.capacity above the number of candidate points is not an error: the buffer is
+    cut to the candidates, and the rollout is the one with exactly that many slots."""
+    scene, model, _ = default_coarse
+    n = model.n_samples
+    big = jsnap.build(scene.replace({"contact.capacity": 10 * n}))
+    assert big.contact.capacity == n
+    exact = jsnap.build(scene.replace({"contact.capacity": n}))
+    controls = model.trajectory()[1:60]
+    a, b = jsnap.rollout(big, controls=controls), jsnap.rollout(exact, controls=controls)
+    assert float(np.max(np.asarray(a.insertion_force))) > 0.1  # the hook was touched
+    np.testing.assert_array_equal(np.asarray(a.insertion_force), np.asarray(b.insertion_force))
+
+
 def test_cli_simulate_writes_outputs(tmp_path, capsys):
     scene = tmp_path / "s.toml"
     text = open(jsnap.load_scene().source).read()

@@ -370,7 +370,10 @@ def build_model(scene: Scene, *, progress: bool = False) -> tuple[Model, BuildRe
             samples=samples,
             rigid=rigid,
             drive=drive,
-            contact=ContactSettings(solver, ct["capacity"], ct["margin"], ct["compliance"]),
+            # More slots than candidate points would only be empty slots (and top_k refuses).
+            contact=ContactSettings(
+                solver, min(ct["capacity"], report.contact_points), ct["margin"], ct["compliance"]
+            ),
             params=params_from_scene(scene),
             motion=jnp.asarray(g.poses),
             mesh=MeshArrays(

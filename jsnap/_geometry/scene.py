@@ -340,7 +340,14 @@ SCHEMA: dict[str, dict[str, Key]] = {
     },
     "contact": {
         "friction": _nonneg("", 0.3, "Coulomb friction coefficient between the parts"),
-        "capacity": Key(int, 64, "", 1, doc="contact buffer slots: the most points in contact in one step"),
+        "capacity": Key(
+            int,
+            64,
+            "",
+            1,
+            doc="contact buffer slots: the most points in contact in one step (at most the number of "
+            "candidate points is used)",
+        ),
         "width_spacing": _pos("mm", 1.0, "spacing of the contact candidate lines across the connector's width"),
         "solver": Key(
             str,
