@@ -35,7 +35,9 @@ import numpy as np
 from _common import code_version, scan_timing
 
 import jsnap
+from jsnap._apps.simulate import ring_copies
 from jsnap._build.strain import _nodal_displacement
+from jsnap._core.sdf import RoundedCylinderSDF
 from jsnap._geometry.mesh import TetMesh
 from jsnap._geometry.presets import PRESETS
 from jsnap._geometry.scene import default_scene_path
@@ -108,6 +110,20 @@ def box_edges(centre, quat, half) -> list[np.ndarray]:
     return edges
 
 
+def bead_profile(centre, half) -> list[np.ndarray]:
+    """The annular bead's outline in the plane y = 0 near the sector (x > 0): its side at
+    x = radius and 0.3 mm of its two end faces, as (2, 3) segments."""
+    R, h = half[0], half[2]
+    c = np.asarray(centre, np.float64)
+    x, z = np.array([1.0, 0, 0]), np.array([0, 0, 1.0])
+    bottom, top = c - h * z, c + h * z
+    return [
+        np.array([bottom + (R - 0.3) * x, bottom + R * x]),
+        np.array([bottom + R * x, top + R * x]),
+        np.array([top + (R - 0.3) * x, top + R * x]),
+    ]
+
+
 def run_preset(preset: str) -> tuple[dict, dict]:
     """One preset's numbers (for the JSON) and what its figure needs."""
     scene, path = scene_of(preset)
@@ -137,8 +153,11 @@ def run_preset(preset: str) -> tuple[dict, dict]:
         "k": k,
         "rigid_edges": None
         if half is None
+        else bead_profile(np.asarray(res.plug)[k], np.asarray(half))
+        if isinstance(rigid, RoundedCylinderSDF)
         else box_edges(np.asarray(res.plug)[k], np.asarray(res.plug_rotation)[k], np.asarray(half)),
     }
+    copies = ring_copies(scene)
     row = {
         "scene": str(path.relative_to(ROOT.parent)) if path.is_relative_to(ROOT.parent) else path.name,
         "method": model.method,
@@ -155,6 +174,8 @@ def run_preset(preset: str) -> tuple[dict, dict]:
         "status": res.status(),
         "peak_insertion_force_N": float(F[k]),
         "travel_at_peak_mm": float(travel[k]),
+        # The annular preset models a sector: its whole ring's force is this many times more.
+        "ring_copies": copies,
         "peak_step": k,
         "peak_strain": float(peak.max_principal),
         "peak_strain_step": int(peak.step),
@@ -290,6 +311,11 @@ def plot_preset(preset: str, row: dict, fig_data: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def _sector(row: dict) -> str:
+    copies = row.get("ring_copies")
+    return "" if copies is None else f" (a 1/{copies:g} sector of the ring)"
+
+
 def plot_materials(rows: dict, curves: dict, path: Path) -> None:
     import matplotlib
 
@@ -309,7 +335,8 @@ def plot_materials(rows: dict, curves: dict, path: Path) -> None:
                 styles[j % len(styles)],
                 color=color,
                 lw=1.3,
-                label=f"{preset}, {name} (E {m['youngs_modulus']:g} MPa, ν {m['poissons_ratio']:g}): "
+                label=f"{preset}{_sector(rows[preset])}, {name} (E {m['youngs_modulus']:g} MPa, "
+                f"ν {m['poissons_ratio']:g}): "
                 f"peak {rows[preset]['materials'][name]['peak_insertion_force_N']:.2f} N",
             )
     ax.axhline(0, color="k", lw=0.5)

@@ -2,11 +2,14 @@
 stroke from named dimensions (the same things a user gives in files); impossible dimensions are
 errors naming the key."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 import jsnap
 from jsnap._geometry.presets import (
+    annular_section,
     box_lid_pieces,
     clip_section,
     default_rigid,
@@ -19,6 +22,7 @@ from jsnap._geometry.scene import SceneError, default_scene_path
 CLIP = default_scene_path().parent / "two_hook_clip.toml"
 LATCH = default_scene_path().parent / "cable_latch.toml"
 LID = default_scene_path().parent / "box_lid.toml"
+ANNULAR = default_scene_path().parent / "annular.toml"
 
 
 def _area(poly):
@@ -74,8 +78,8 @@ def test_clip_rigid_block_is_the_gap_between_the_hooks(clip):
         ({"connector.tip_thickness": 1.0}, r"unknown key connector\.tip_thickness.*takes type, length"),
         ({"connector.length": 2.0}, r"connector\.undercut = 0\.8: the arm must bend its tip 0\.8 mm on a 2 mm"),
         (
-            {"connector.type": "annular"},
-            r"connector\.type = 'annular': must be one of cantilever, two_hook_clip",
+            {"connector.type": "bayonet"},
+            r"connector\.type = 'bayonet': must be one of cantilever, two_hook_clip",
         ),
         ({"plug.fillet": 0.3}, r"plug\.fillet = 0\.3: must be <= half"),
     ],
@@ -439,3 +443,132 @@ def test_lid_hooks_engage_one_pair_after_the_other(lid_run):
     o = nodes[np.setdiff1d(np.arange(nodes.shape[0]), free[0::3] // 3)].mean(axis=0)
     moment = np.cross(rest[only] - o, -force[only]).sum(axis=1)  # of the push on the lid
     np.testing.assert_allclose(np.asarray(res.base_moment)[only, 0], moment[:, 0], rtol=0.01)
+
+
+# ---- annular snap -------------------------------------------------------------------------------
+
+# CalculiX 2.20, the same snap (a 1-degree sector, finest mesh, frictionless, linear geometry):
+# the whole ring's insertion force at 0.15, 0.20 and 0.25 mm of travel, on the rise where no
+# snap is near (jsnap/data/calculix-annular/annular_mu0_lin_curve.csv).
+CALCULIX_ANNULAR = Path(jsnap.__file__).parent / "data" / "calculix-annular" / "annular_mu0_lin_curve.csv"
+
+
+@pytest.fixture(scope="module")
+def annular():
+    scene = jsnap.load_scene(ANNULAR)
+    c = scene["connector"]
+    return scene, generate(c["type"], c, scene["plug"], scene["solver"]["mesh_size"])
+
+
+def test_annular_sector_is_the_turned_section_between_sliding_planes(annular):
+    """The sector is one element wide: its curved faces are chords between the two cut planes,
+    so the volume is Pappus's with sin(theta) for theta (to 1e-4: the two cut faces are meshed
+    apart); the cut faces' nodes, and only they, slide on the planes at +-theta/2; the tube's
+    end z = 0 is fixed; the rigid part is a cylinder of the bore's radius."""
+    scene, p = annular
+    c, mesh = scene["connector"], p.mesh
+    sec = annular_section(c)
+    x, z = sec[:, 0], sec[:, 1]
+    cross = x * np.roll(z, -1) - np.roll(x, -1) * z
+    area = 0.5 * cross.sum()
+    r_c = np.sum((x + np.roll(x, -1)) * cross) / (6 * area)
+    theta = np.radians(c["sector"])
+    np.testing.assert_allclose(mesh.volumes().sum(), np.sin(theta) * area * r_c, rtol=1e-4)
+    phi = np.arctan2(mesh.points[:, 1], mesh.points[:, 0])
+    for nodes, normal in mesh.sliding:  # n = (-sin(phi), cos(phi), 0) for the plane at phi
+        on = np.flatnonzero(np.isclose(phi, np.arctan2(normal[0], -normal[1]) + np.pi, atol=1e-9))
+        on = on if on.size else np.flatnonzero(np.isclose(phi, np.arctan2(-normal[0], normal[1]), atol=1e-9))
+        assert np.array_equal(np.sort(nodes), on)
+        np.testing.assert_allclose(mesh.points[nodes] @ normal, 0.0, atol=1e-12)
+    assert sorted(np.degrees(np.arctan2(-n[0], n[1])) for _, n in mesh.sliding) == pytest.approx(
+        [-0.5 * c["sector"], 0.5 * c["sector"]]
+    )
+    np.testing.assert_array_equal(mesh.base_nodes, np.flatnonzero(np.abs(mesh.points[:, 2]) < 1e-12))
+    assert p.plug.shape == "cylinder" and p.plug.half[0] == c["radius"]
+
+
+def test_annular_sector_stiffness_does_not_depend_on_its_angle():
+    """A uniform radial ring load on the lip's land: the radial displacement per unit load per
+    unit arc is the same for a 1 and a 4 degree sector (the sliding planes hold the hoop
+    stiffness of the whole ring) and the circumferential displacement is nil."""
+    import skfem
+
+    from jsnap._build import fem
+
+    scene = jsnap.load_scene(ANNULAR)
+    c, m = dict(scene["connector"]), scene["material"]
+    R, yu, L, flat = c["radius"], c["undercut"], c["length"], c["flat"]
+    k = {}
+    for sector in (1.0, 4.0):
+        c["sector"] = sector
+        asm = fem.assemble(generate("annular", c, scene["plug"], 0.5).mesh, "P2")
+        land = asm.basis.mesh.facets_satisfying(
+            lambda x: (np.abs(np.hypot(x[0], x[1]) - (R - yu)) < 0.01) & (x[2] > L) & (x[2] < L + flat),
+            boundaries_only=True,
+        )
+        fb = skfem.FacetBasis(asm.basis.mesh, asm.basis.elem, facets=land)
+
+        @skfem.LinearForm
+        def outward(v, w):
+            r = np.sqrt(w.x[0] ** 2 + w.x[1] ** 2)
+            return (w.x[0] * v[0] + w.x[1] * v[1]) / r
+
+        f = outward.assemble(fb)  # 1 N/mm^2 over the land: flat N per mm of arc
+        u = fem.solve_static(asm, m["youngs_modulus"], m["poissons_ratio"], f).reshape(-1, 3)
+        X = asm.nodes
+        r = np.hypot(X[:, 0], X[:, 1])
+        ur = (u[:, 0] * X[:, 0] + u[:, 1] * X[:, 1]) / r
+        ut = (u[:, 1] * X[:, 0] - u[:, 0] * X[:, 1]) / r
+        on_land = (np.abs(r - (R - yu)) < 1e-6) & (X[:, 2] >= L - 1e-9) & (X[:, 2] <= L + flat + 1e-9)
+        assert np.abs(ut).max() < 1e-3 * ur[on_land].mean()
+        k[sector] = flat / ur[on_land].mean()  # N per mm of arc per mm
+    assert abs(k[4.0] / k[1.0] - 1) < 0.01
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"connector.sector": 8.0}, r"connector\.sector = 8\.0: the sector's facets.*sector <= 4\.58"),
+        ({"connector.undercut": 0.4}, r"connector\.undercut = 0\.4: the lip must stretch.*hoop strain of 13 %"),
+        ({"motion.direction": [0.0, 0.1, -1.0]}, r"connector\.sector = 2\.0: .*motion\.direction breaks"),
+        ({"plug.width": 2.0}, r"plug\.width = 2\.0: the annular preset's rigid part is a bead"),
+    ],
+)
+def test_annular_keys_are_checked_on_load(changes, message):
+    with pytest.raises(SceneError, match=message):
+        jsnap.load_scene(ANNULAR).replace(changes)
+
+
+@pytest.fixture(scope="module")
+def annular_runs():
+    """The frictionless snap: the full model in float64 and the shipped reduced model (float32)."""
+    scene = jsnap.load_scene(ANNULAR).replace({"contact.friction": 0.0})
+    full = jsnap.build(scene.replace({"solver.method": "full", "solver.dtype": "float64"}))
+    reduced = jsnap.build(scene)
+    copies = 360.0 / scene["connector"]["sector"]
+    return copies, full, jsnap.rollout(full).check(), reduced, jsnap.rollout(reduced).check()
+
+
+def test_annular_rise_follows_calculix(annular_runs):
+    """The whole ring's insertion force on the rise (0.15 to 0.25 mm, the lip pushed open by the
+    bead's rounded edge on the lead ramp) within 5 % of CalculiX's on the same snap."""
+    copies, _, full, _, _ = annular_runs
+    d = np.genfromtxt(CALCULIX_ANNULAR, delimiter=",", names=True)
+    travel = np.asarray(full.travel)
+    F = copies * np.asarray(full.insertion_force)
+    for t in (0.15, 0.20, 0.25):
+        ours, ref = np.interp(t, travel, F), np.interp(t, d["plug_travel_mm"], d["insertion_force_N"])
+        assert abs(ours / ref - 1) < 0.05, (t, ours, ref)
+
+
+def test_annular_reduced_model_follows_the_full_model(annular_runs):
+    """The shipped reduced model (float32) against the full model (float64): the peak within
+    2 %, the rise (up to the full model's peak) within 1 % RMS of the peak, and the base takes
+    the axial push (the cut faces' sliding planes take only circumferential reactions)."""
+    _, full_model, full, reduced_model, reduced = annular_runs
+    assert reduced_model.n_dof < full_model.n_dof / 10
+    Ff, Fr = np.asarray(full.insertion_force), np.asarray(reduced.insertion_force, np.float64)
+    assert abs(Fr.max() / Ff.max() - 1) < 0.02
+    rise = int(np.argmax(Ff)) + 1
+    assert np.sqrt(np.mean((Fr[:rise] - Ff[:rise]) ** 2)) < 0.01 * Ff.max()
+    np.testing.assert_allclose(np.asarray(full.base_force)[:rise, 2], Ff[:rise], atol=0.01 * Ff.max())

@@ -10,12 +10,13 @@ import trimesh
 
 from jsnap._build.sdf import mesh_sdf_from_trimesh
 from jsnap._core.sdf import (
+    RoundedCylinderSDF,
     mesh_sdf,
     mesh_sdf_and_normal,
     rounded_box_sdf,
     rounded_box_sdf_and_normal,
 )
-from jsnap._geometry.plug import rounded_box_mesh
+from jsnap._geometry.plug import rounded_box_mesh, rounded_cylinder_mesh
 
 # Kernel tests in float64 (jsnap's scoped 64-bit mode, as its entry points use internally).
 pytestmark = pytest.mark.usefixtures("x64")
@@ -429,3 +430,45 @@ def test_mesh_errors_and_orientation():
         ref = mesh_sdf(mesh_sdf_from_trimesh(box), pts)
     np.testing.assert_allclose(ref, [-0.5, 0.2, 0.5], atol=1e-15)
     np.testing.assert_array_equal(mesh_sdf(flipped, pts), ref)
+
+
+# ----------------------------------------------------------------------------------------------
+# Analytic rounded cylinder (the annular preset's bead)
+# ----------------------------------------------------------------------------------------------
+
+
+def test_rounded_cylinder_against_its_triangle_mesh():
+    """The analytic rounded cylinder against the exact distance to its triangle mesh (vertices
+    on the exact surface, inscribed): the mesh's value is larger by at most the chord error of
+    its facets, the normals agree where the mesh is flat (the ends and, off the seams, the
+    side), and the gradient is the finite difference of the value."""
+    radius, half, fillet, sections = 3.0, 0.25, 0.1, 256
+    sdf = RoundedCylinderSDF(jnp.array([radius, radius, half]), jnp.array(fillet))
+    mesh = mesh_sdf_from_trimesh(rounded_cylinder_mesh(radius, half, fillet, sections))
+    rng = np.random.default_rng(5)
+    rho = radius + rng.uniform(-0.4, 0.3, 400)
+    ang = rng.uniform(0, 2 * np.pi, 400)
+    pts = np.stack([rho * np.cos(ang), rho * np.sin(ang), rng.uniform(-0.45, 0.45, 400)], axis=1)
+    phi, n = sdf(jnp.asarray(pts))
+    diff = np.asarray(mesh_sdf(mesh, pts)) - np.asarray(phi)
+    # Chords around (radius (1 - cos(pi / sections))) and along the fillet's 8 segments.
+    chord = radius * (1 - np.cos(np.pi / sections)) + fillet * (1 - np.cos(np.pi / 32))
+    assert diff.min() >= -1e-9 and diff.max() <= chord + 1e-9
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(n), axis=1), 1.0, atol=1e-12)
+    flat = np.abs(pts[:, 2]) > half + 0.02  # beyond an end, above its flat face
+    ends = np.abs(np.hypot(pts[:, 0], pts[:, 1])) < radius - fillet
+    np.testing.assert_allclose(
+        np.asarray(n)[flat & ends], np.sign(pts[flat & ends, 2:]) * [[0, 0, 1]], atol=1e-12
+    )
+    g = jax.vmap(jax.grad(lambda p: sdf(p[None])[0][0]))(jnp.asarray(pts))
+    eps = 1e-6
+    fd = np.stack(
+        [
+            (np.asarray(sdf(jnp.asarray(pts + eps * e))[0]) - np.asarray(sdf(jnp.asarray(pts - eps * e))[0]))
+            / (2 * eps)
+            for e in np.eye(3)
+        ],
+        axis=1,
+    )
+    np.testing.assert_allclose(np.asarray(g), fd, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(g), np.asarray(n), atol=1e-9)

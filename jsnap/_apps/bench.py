@@ -178,6 +178,20 @@ def _box_lid(d):
     return text
 
 
+def _annular(d):
+    mu0, mu3 = d["accuracy"]["mu 0"], d["accuracy"]["mu 0.3"]
+    red = mu0["reduced_float32"]
+    rate = d["speed"]["reduced_float32"]["steps_per_second"]
+    ccx0, ccx3 = mu0["calculix"][0], mu3["calculix"][0]
+    return (
+        f"annular snap, a {d['sector_deg']:g} degree sector x {d['ring_copies']:g}: frictionless peak "
+        f"{red['peak_N']:.0f} N = {ccx0['reduced_float32']['peak_over_reference']:.3f} x CalculiX's, mu 0.3 "
+        f"{mu3['reduced_float32']['peak_N']:.0f} N = {ccx3['reduced_float32']['peak_over_reference']:.3f} x; "
+        f"reduced vs full rise RMSE {100 * red['rmse_rise_of_full_peak']:.2f} % (mu 0), "
+        f"{100 * mu3['reduced_float32']['rmse_rise_of_full_peak']:.2f} % (mu 0.3); {rate:.0f} steps/s"
+    )
+
+
 _LATCH_FACTORS = (("f_3d_beam", "beam theory"), ("f_root", "root gives way"), ("f_ramp", "ramp turned"))
 
 
@@ -471,6 +485,12 @@ BENCHMARKS = [
         "cable latch preset: reduced vs full vs CalculiX, the design guide's gap, speed side by side",
         False,
         _cable_latch,
+    ),
+    Bench(
+        "annular",
+        "annular snap preset (a sector of the ring): reduced vs full vs CalculiX, design guide, speed",
+        False,
+        _annular,
     ),
     Bench(
         "gallery",

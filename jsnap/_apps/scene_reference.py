@@ -82,6 +82,17 @@ _CONNECTORS = {
     "latch springs back behind it (the plug is moved into the jack; jsnap moves the jack relative "
     "to the plug). The latch's free end must not reach the body: `gap` must exceed its "
     "beam-theory swing. Meshed with gmsh like the clip, finer along the catch's edges.",
+    "annular": "A tube with an inward lip at its mouth snapped over a rigid bead (a cap, a pen, a "
+    "bottle closure): the wall r in [radius, radius + thickness] from its fixed end z = 0 up to "
+    "its top, the lip (the cantilever's hook section turned about the z axis: undercut, lead and "
+    "return angles, flat) reaching `undercut` into the bore, its retention face `length` above "
+    "the fixed end. The rigid part is a bead, a cylinder of the bore's radius `plug.height` tall "
+    "with its edges rounded by `plug.fillet`, pushed down the axis through the lip. jsnap models "
+    "a `sector` of the ring one element wide whose two cut faces slide on their planes (exact for "
+    "this axisymmetric insertion, so the sector's contact line and model stay small); its forces "
+    "are the sector's, the whole ring's axial force is 360 / sector times it (the summary's "
+    "`ring_copies`). Another motion or rigid part would break the symmetry and is refused. "
+    "Meshed with gmsh, finer along the lip's edges.",
 }
 
 _TYPES = {float: "number", int: "integer", bool: "boolean", str: "string", list: "array"}

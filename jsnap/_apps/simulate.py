@@ -74,15 +74,37 @@ def _lever(scene) -> float:
     return c["length"]
 
 
+def ring_copies(scene) -> float | None:
+    """How many of the modelled sectors make the whole ring (360 / connector.sector) for the
+    annular preset, else None."""
+    c = scene["connector"]
+    return 360.0 / c["sector"] if c and c["type"] == "annular" else None
+
+
+def _annular_guide(c, E: float, nu: float, mu: float) -> tuple[float, float]:
+    """The design guide's annular snap (an elastic hub on a rigid shaft, the joint near the
+    hub's end): strain eps = y / d and mating force W = P (mu + tan a) / (1 - mu tan a) of the
+    whole ring, P = y d E X_N, X_N = 0.62 sqrt((k - 1) / (k + 1)) / ((k^2 + 1) / (k^2 - 1) + nu),
+    k = d_o / d; y = 2 y_u the diametral undercut, d = 2 R, d_o = 2 (R + h)."""
+    y, d, k = 2 * c["undercut"], 2 * c["radius"], (c["radius"] + c["thickness"]) / c["radius"]
+    X = 0.62 * math.sqrt((k - 1) / (k + 1)) / ((k**2 + 1) / (k**2 - 1) + nu)
+    ta = math.tan(math.radians(c["lead_angle"]))
+    return y / d, y * d * E * X * (mu + ta) / (1 - mu * ta)
+
+
 def design_guide_strain(scene) -> float | None:
     """Snap-fit design-guide strain at the root when the hook is deflected by the undercut:
     eps = 1.5 h y / L^2 (constant arm) or h y / (1.09 L^2) (arm tapered to h/2), dimensionless
-    (None for a part from a file). For the cable latch L is the catch's distance from the root.
+    (None for a part from a file). For the cable latch L is the catch's distance from the root;
+    for the annular snap the hoop strain y / d (:func:`_annular_guide`).
 
     Beam theory for a deflection y of a cantilever of length L and root thickness h at its
     load: no stress concentration at the root, the root clamped.
     """
     c = scene["connector"]
+    if c and c["type"] == "annular":
+        m = scene["material"]
+        return _annular_guide(c, m["youngs_modulus"], m["poissons_ratio"], 0.0)[0]
     if not c or c["type"] not in _HOOKS:
         return None
     L, h, y = _lever(scene), c["thickness"], c["undercut"]
@@ -95,9 +117,13 @@ def design_guide_force(scene) -> float | None:
     hook presets, the sum over the hooks (None for a part from a file).
 
     P = b h^2 E eps / (6 L) with eps from :func:`design_guide_strain`; a beam-theory estimate
-    (see the validation page for how far it is off).
+    (see the validation page for how far it is off). For the annular snap, the ring's force
+    (:func:`_annular_guide`) over :func:`ring_copies`: the modelled sector's share.
     """
     c, m = scene["connector"], scene["material"]
+    if c and c["type"] == "annular":
+        W = _annular_guide(c, m["youngs_modulus"], m["poissons_ratio"], scene["contact"]["friction"])[1]
+        return W / ring_copies(scene)
     if not c or c["type"] not in _HOOKS:
         return None
     L, h, b = _lever(scene), c["thickness"], c["width"]
@@ -340,6 +366,8 @@ def simulate(args) -> int:
         else None,
         "min_insertion_force_N": _finite(np.nanmin(F)) if np.isfinite(F).any() else None,
         "design_guide_mating_force_N": guide,
+        # The annular preset models a sector: the whole ring's forces are this many times its.
+        "ring_copies": ring_copies(scene),
         "insertion_axis": np.asarray(model.axis).tolist(),
         "peak_base_moment_Nmm": _finite(np.nanmax(np.linalg.norm(np.asarray(res.base_moment), axis=1)))
         if np.isfinite(np.asarray(res.base_moment)).any()
@@ -363,9 +391,12 @@ def simulate(args) -> int:
         if summary["peak_insertion_force_N"] is not None:
             peak, at = summary["peak_insertion_force_N"], summary["travel_at_peak_mm"]
             rate, real = summary["steps_per_second"], summary["real_time_factor"]
+            copies = summary["ring_copies"]
+            ring = "" if copies is None else f" (a 1/{copies:g} sector: the whole ring's {copies * peak:.1f} N)"
             print(
                 f"jsnap: {F.size} steps ({model.method} model, {model.n_dof} dof), peak insertion force "
-                f"{peak:.3f} N at {at:.3f} mm{'' if guide is None else f' (design guide {guide:.3f} N)'}; "
+                f"{peak:.3f} N at {at:.3f} mm{'' if guide is None else f' (design guide {guide:.3f} N)'}"
+                f"{ring}; "
                 f"{rate:.0f} steps/s "
                 f"({real:.1f}x real time); build {t_build:.1f} s, compile {t_compile:.1f} s; wrote {out}/"
             )

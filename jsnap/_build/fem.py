@@ -62,6 +62,9 @@ class Assembly:
         K_lam, K_mu, M1: (3N, 3N) CSR matrices sharing one sparsity pattern.
         fixed: (nb,) sorted dofs clamped at the base (every dof of every node on z = 0).
         free: (nf,) sorted remaining dofs.
+        sliding: (3N, 3N) CSR penalty part of ``K_mu`` that holds the nodes of the mesh's
+            sliding (symmetry) planes in their planes (see :func:`sliding_penalty`); empty
+            without planes.
     """
 
     element: str
@@ -74,6 +77,7 @@ class Assembly:
     fixed: np.ndarray
     free: np.ndarray
     basis: skfem.CellBasis
+    sliding: sp.csr_matrix
 
     @property
     def n_dof(self) -> int:
@@ -120,9 +124,10 @@ def assemble(mesh: TetMesh, element: str = "P2") -> Assembly:
     K_lam = _k_lam.assemble(basis)
     K_mu = _k_mu.assemble(basis)
     M1 = _m1.assemble(basis)
-    K_lam, K_mu, M1 = _same_pattern(K_lam, K_mu, M1)
-
     n_nodes = basis.N // 3
+    sliding = sliding_penalty(K_mu, _fe_planes(mesh, skmesh, element, n_nodes))
+    K_lam, K_mu, M1 = _same_pattern(K_lam, K_mu + sliding, M1)
+
     nodes = basis.doflocs[:, 0::3].T.copy()
     # Node-major dof numbering is what everything downstream relies on: check, never assume.
     if not np.array_equal(basis.nodal_dofs[0], 3 * np.arange(skmesh.p.shape[1])):
@@ -140,7 +145,48 @@ def assemble(mesh: TetMesh, element: str = "P2") -> Assembly:
         raise RuntimeError("unexpected scikit-fem node numbering (vertices, then edges)")
     fixed = np.flatnonzero(np.repeat(base, 3))
     free = np.flatnonzero(~np.repeat(base, 3))
-    return Assembly(element, mesh, nodes, cells, K_lam, K_mu, M1, fixed, free, basis)
+    return Assembly(element, mesh, nodes, cells, K_lam, K_mu, M1, fixed, free, basis, sliding)
+
+
+# The penalty stiffness of a sliding plane over the largest diagonal entry of its node's elastic
+# block: the constraint is violated by ~1/SLIDING_PENALTY of the node's displacement (a 1e-4
+# relative error), while K's condition number grows by the same factor only (sparse float64
+# factorisations keep ~1e-4 relative accuracy at 1e12).
+SLIDING_PENALTY = 1e4
+
+
+def _fe_planes(mesh: TetMesh, skmesh, element: str, n_nodes: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The sliding planes on finite-element nodes: a P2 edge node lies on a plane when both
+    its ends do (like the fixed base)."""
+    planes = []
+    for nodes, normal in mesh.sliding:
+        on = np.zeros(skmesh.p.shape[1], dtype=bool)
+        on[nodes] = True
+        if element == "P2":
+            on = np.concatenate([on, on[skmesh.edges[0]] & on[skmesh.edges[1]]])
+        planes.append((np.flatnonzero(on[:n_nodes]), normal))
+    return planes
+
+
+def sliding_penalty(K_mu: sp.spmatrix, planes) -> sp.csr_matrix:
+    """(3N, 3N) penalty ``sum_i k_i n n'`` on the 3x3 diagonal blocks of the nodes of each
+    sliding plane ``(nodes, n)``: a stiff spring along the plane's normal, ``k_i`` =
+    :data:`SLIDING_PENALTY` times the largest diagonal entry of node i's block of ``K_mu``, so
+    that it scales with the shear modulus like the elastic stiffness. A node on two planes (an
+    edge of a sector on its axis) gets both springs."""
+    n = K_mu.shape[0]
+    diag = K_mu.diagonal().reshape(-1, 3).max(axis=1)
+    rows, cols, vals = [], [], []
+    for nodes, normal in planes:
+        nn = np.outer(normal, normal)
+        k = SLIDING_PENALTY * diag[nodes]
+        d = 3 * nodes[:, None, None]
+        rows.append(np.broadcast_to(d + np.arange(3)[None, :, None], (nodes.size, 3, 3)).ravel())
+        cols.append(np.broadcast_to(d + np.arange(3)[None, None, :], (nodes.size, 3, 3)).ravel())
+        vals.append((k[:, None, None] * nn[None]).ravel())
+    if not rows:
+        return sp.csr_matrix((n, n))
+    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
 
 
 def wrench_rows(asm: Assembly) -> np.ndarray:

@@ -27,6 +27,7 @@ from jsnap._build.samples import (
     locate_on_faces,
     reachable_faces,
     section_samples,
+    turned_samples,
     surface_samples,
 )
 from jsnap._build.sdf import mesh_sdf_from_trimesh
@@ -35,7 +36,7 @@ from jsnap._core.drive import ImpedanceDrive, PositionDrive
 from jsnap._core.model import ContactSettings, MeshArrays, Model, Samples
 from jsnap._core.params import Params
 from jsnap._core.parts import FullPart
-from jsnap._core.sdf import BoundedSDF, RoundedBoxSDF
+from jsnap._core.sdf import BoundedSDF, RoundedBoxSDF, RoundedCylinderSDF
 from jsnap._geometry.motion import quat_matrix, sample_poses, straight_insertion, straight_poses
 from jsnap._geometry.part import load_part, load_rigid
 from jsnap._geometry.presets import generate, hook_of
@@ -147,12 +148,14 @@ def check_memory(n_dof: int, method: str, available: int | None = None) -> int:
 @dataclass
 class _Rigid:
     """The rigid part as the build needs it: its surface in its own frame, a box about its
-    frame's origin that holds it, the rounded box's radius (preset plug), its start centre."""
+    frame's origin that holds it, the fillet radius and shape of a preset plug (a rounded box
+    or cylinder), its start centre."""
 
     mesh: object
     half: np.ndarray
     radius: float | None
     start: np.ndarray
+    shape: str = "box"
 
 
 @dataclass
@@ -167,6 +170,7 @@ class _Geometry:
     axis: np.ndarray
     cantilever: object | None = None
     stroke: float | None = None
+    radius: float | None = None
 
 
 def _geometry(scene: Scene) -> _Geometry:
@@ -190,7 +194,7 @@ def _geometry(scene: Scene) -> _Geometry:
         rigid = _Rigid(surface.mesh, surface.half, None, surface.centroid)
     else:
         plug = preset.plug
-        rigid = _Rigid(plug.mesh(), plug.half, plug.radius, plug.start)
+        rigid = _Rigid(plug.mesh(), plug.half, plug.radius, plug.start, plug.shape)
     keys = motion_keyposes(scene)
     if keys is None:
         d = np.asarray(m["direction"] or [0.0, 0.0, -1.0], np.float64)
@@ -214,6 +218,8 @@ def _geometry(scene: Scene) -> _Geometry:
         d = net / np.linalg.norm(net)
     if c and c["type"] == "cantilever":
         return _Geometry(mesh, rigid, poses, d, hook_of(c), m["stroke"] or preset.stroke)
+    if c and c["type"] == "annular":  # its hook section turned about z (a sector: straight down)
+        return _Geometry(mesh, rigid, poses, d, hook_of(c), m["stroke"] or preset.stroke, c["radius"])
     return _Geometry(mesh, rigid, poses, d)
 
 
@@ -257,7 +263,11 @@ def _contact_candidates(scene: Scene, g: _Geometry, asm: Assembly):
             f"swept box [{', '.join(f'{a:.3g}' for a in swept_lo)}] - [{', '.join(f'{a:.3g}' for a in swept_hi)}] mm "
             "misses the part): no contact is possible; check motion.stroke, motion.direction or the waypoints"
         )
-    if g.cantilever is not None and ct["sampling"] == "auto":
+    if g.radius is not None and ct["sampling"] == "auto":
+        X, normals, corner, stencil, group, order = turned_samples(
+            g.cantilever, g.radius, mesh, lo, hi, ct["spacing"], ct["width_spacing"]
+        )
+    elif g.cantilever is not None and ct["sampling"] == "auto":
         # The canonical cantilever keeps its own section sampling: the general one differs from
         # it by 0.16 % in the default scene's peak, but by 3 % on a 1.2 mm mesh (see "Where
         # contact is sampled" in docs/own-connector.md).
@@ -302,9 +312,10 @@ def _rigid_sdf(scene: Scene, rigid: _Rigid, report: BuildReport, progress: bool)
     """The rigid part's signed distance component (``solver.sdf``)."""
     kind = sdf_kind(scene)
     if kind == "analytic":
-        return RoundedBoxSDF(jnp.asarray(rigid.half), jnp.asarray(rigid.radius, jnp.float64))
-    # A lower bound that culls far points cheaply: the rounded box itself (preset) or a plain
-    # box holding the surface.
+        exact = RoundedCylinderSDF if rigid.shape == "cylinder" else RoundedBoxSDF
+        return exact(jnp.asarray(rigid.half), jnp.asarray(rigid.radius, jnp.float64))
+    # A lower bound that culls far points cheaply: the rounded box itself (preset; it holds a
+    # rounded cylinder too) or a plain box holding the surface.
     bound = RoundedBoxSDF(jnp.asarray(rigid.half), jnp.asarray(rigid.radius or 0.0, jnp.float64))
     if kind == "mesh":
         return BoundedSDF(mesh_sdf_from_trimesh(rigid.mesh), bound, _MESH_SLACK)
@@ -372,7 +383,11 @@ def build_model(scene: Scene, *, progress: bool = False) -> tuple[Model, BuildRe
             drive=drive,
             # More slots than candidate points would only be empty slots (and top_k refuses).
             contact=ContactSettings(
-                solver, min(ct["capacity"], report.contact_points), ct["margin"], ct["compliance"]
+                solver,
+                min(ct["capacity"], report.contact_points),
+                ct["margin"],
+                ct["compliance"],
+                ct["stabilisation"],
             ),
             params=params_from_scene(scene),
             motion=jnp.asarray(g.poses),

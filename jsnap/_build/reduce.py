@@ -238,9 +238,17 @@ def segment_blocks(asm: Assembly, seg: Segmentation, i: int):
     elements = np.flatnonzero(seg.element_segment == i)
     basis = skfem.Basis(asm.basis.mesh, skfem.ElementVector(_ELEMENTS[asm.element]()), elements=elements)
     dofs = _dofs(seg.nodes[i])
+    # A sliding plane's springs (nodal, see fem.sliding_penalty) go to the first segment that
+    # has a copy of the node: the segments' sum is the whole part's penalty.
+    first = np.full(asm.nodes.shape[0], len(seg.nodes))
+    for j in range(len(seg.nodes) - 1, -1, -1):
+        first[seg.nodes[j]] = j
+    mine = np.repeat(first == i, 3).astype(np.float64)
     out, react = [], []
     for form in (_k_lam, _k_mu, _m1):
         A = form.assemble(basis).tocsr()
+        if form is _k_mu and asm.sliding.nnz:
+            A = A + sp.diags(mine) @ asm.sliding
         out.append(A[dofs][:, dofs].tocsr())
         react.append(A[asm.fixed][:, dofs].tocsr())
     return out, react
@@ -883,6 +891,8 @@ def cache_key(asm: Assembly, seed_faces, sample, stencil, normals, settings: dic
         dict(settings, element=asm.element, gramian_damping=GRAMIAN_DAMPING, joint=_JOINT)
     )
     h.arrays(asm.mesh.points, asm.mesh.cells, asm.fixed, np.sort(np.sort(seed_faces, axis=1), axis=0))
+    if asm.sliding.nnz:
+        h.arrays(asm.sliding.indices, asm.sliding.indptr, asm.sliding.data)
     return h.arrays(*sample, *stencil, np.asarray(normals, dtype=np.float64)).hexdigest()
 
 

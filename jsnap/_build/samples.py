@@ -25,6 +25,7 @@ __all__ = [
     "locate_on_faces",
     "reachable_faces",
     "section_samples",
+    "turned_samples",
     "surface_samples",
 ]
 
@@ -108,6 +109,46 @@ def section_samples(geom: Cantilever, lo, hi, spacing: float, width_spacing: flo
     keep = np.all((X >= lo) & (X <= hi), axis=1)
     _, group = np.unique(group[keep], return_inverse=True)  # renumber 0..G-1
     return X[keep], N[keep], C[keep], stencil[keep], group, order[keep]
+
+
+def turned_samples(geom: Cantilever, radius: float, mesh: TetMesh, lo, hi, spacing: float, width_spacing: float):
+    """Candidate points of the annular snap's sector (:func:`jsnap._geometry.presets.generate`):
+    :func:`section_samples` of its hook section, turned about the z axis (the section's depth
+    ``x`` from the bore is ``r = radius + h - x``, its width position ``y`` the arc ``radius
+    phi``), put on the mesh's faceted surface (each point and stencil point moved to the closest
+    point of the faces contact can reach: the facets are chords of the turned surface) and kept
+    inside the box [lo, hi] (mm). The same arrays as :func:`section_samples`.
+
+    The general :func:`surface_samples` lays lines on flat patches; on a surface of revolution
+    every facet is its own patch, and the edges where a flat face (the tube's top) meets a
+    turned one (the lip's ramp) are polylines its corner points do not follow.
+    """
+    import trimesh
+
+    inf = np.full(3, np.inf)
+    X, N, C, S, G, O = section_samples(geom, -inf, inf, spacing, width_spacing)
+    # Lines at the middles of the strips, not on the sector's cut planes.
+    ny = math.ceil(geom.width / width_spacing) + 1
+    X, S = X * [1, (ny - 1) / ny, 1], S * [1, (ny - 1) / ny, 1]
+
+    def turn(p):
+        r, phi = radius + geom.thickness - p[..., 0], p[..., 1] / radius
+        return np.stack([r * np.cos(phi), r * np.sin(phi), p[..., 2]], axis=-1)
+
+    phi = X[:, 1] / radius
+    c, s = np.cos(phi)[:, None], np.sin(phi)[:, None]
+    nr, nphi = -N[..., 0], N[..., 1]
+    N = np.stack([nr * c - nphi * s, nr * s + nphi * c, N[..., 2]], axis=-1)
+    # x -> -x reverses the frame's handedness: swap the two points across the width in each
+    # half of the stencil so that cross(s3 - s2, s1 - s0) stays the outward normal.
+    S = turn(S)[:, [0, 1, 3, 2, 4, 5, 7, 6]]
+    X = turn(X)
+    keep = np.all((X >= lo) & (X <= hi), axis=1)
+    surface = trimesh.Trimesh(mesh.points, mesh.contact_faces(), process=False)
+    on = lambda q: trimesh.proximity.closest_point(surface, q.reshape(-1, 3))[0].reshape(q.shape)  # noqa: E731
+    X, S = on(X[keep]), on(S[keep])
+    _, G = np.unique(G[keep], return_inverse=True)
+    return X, N[keep], C[keep], S, G, O[keep]
 
 
 # Distance from a face (plane distance plus the barycentric excess scaled by the face's size, mm)

@@ -58,12 +58,15 @@ class ContactSettings(eqx.Module):
         capacity: contact buffer slots (static): the most points in contact at once.
         margin: distance below which a point is a contact candidate, mm (static).
         compliance: contact regularisation per point, mm/N (static).
+        stabilisation: the fraction of a point's penetration into the rigid part that a step
+            removes (static; 0: none, the contact holds velocities only).
     """
 
     solver: AbstractContactSolver
     capacity: int = eqx.field(static=True)
     margin: float = eqx.field(static=True)
     compliance: float = eqx.field(static=True)
+    stabilisation: float = eqx.field(static=True, default=0.0)
 
 
 class MeshArrays(eqx.Module):

@@ -11,6 +11,8 @@ predict-correct path check). Implementations:
 * :class:`RoundedBoxSDF`: the analytic rounded box (a box with filleted edges and corners), with
   a ``custom_jvp`` so that gradients are unit vectors (never NaN) even on the kinks of the
   distance field (centre, medial planes, sharp edges). Exact and cheap.
+* :class:`RoundedCylinderSDF`: the analytic cylinder (axis z) with rounded circular edges (the
+  annular preset's bead): the rounded box's construction in the (radius, height) half-plane.
 * :class:`MeshSDF`: the exact signed distance to a closed triangle mesh by brute force over all
   triangles (the paper's "Model 1" collision baseline), signs from angle-weighted
   pseudonormals (Bærentzen & Aanæs 2005). Built on the host by
@@ -37,6 +39,7 @@ __all__ = [
     "MeshSDF",
     "NeuralSDF",
     "RoundedBoxSDF",
+    "RoundedCylinderSDF",
     "mesh_sdf",
     "mesh_sdf_and_normal",
     "neural_sdf",
@@ -188,16 +191,93 @@ class RoundedBoxSDF(AbstractSDF):
         return rounded_box_sdf_and_normal(q, self.half, self.radius)
 
     def least_along(self, points, like, margin: float):
-        # A fori_loop over the fractions, which XLA:CPU compiles into one small kernel run on
-        # the calling thread; the four queries written side by side are one fusion heavy enough
-        # that XLA splits it across the cores, and on the ~600-1000 points of a step handing
-        # half to the other core cost more than it saved (measured side by side).
-        fractions = jnp.asarray(PATH_CHECKS, like.dtype)
+        return _least_in_loop(self, points, like)
 
-        def least(k, lo):
-            return jnp.minimum(lo, self(points(fractions[k]))[0])
 
-        return jax.lax.fori_loop(0, len(PATH_CHECKS), least, jnp.full_like(like, jnp.inf))
+def _least_in_loop(sdf, points, like):
+    """:meth:`AbstractSDF.least_along` of a cheap analytic SDF, in a fori_loop over the
+    fractions, which XLA:CPU compiles into one small kernel run on the calling thread; the four
+    queries written side by side are one fusion heavy enough that XLA splits it across the
+    cores, and on the ~600-1000 points of a step handing half to the other core cost more than
+    it saved (measured side by side)."""
+    fractions = jnp.asarray(PATH_CHECKS, like.dtype)
+
+    def least(k, lo):
+        return jnp.minimum(lo, sdf(points(fractions[k]))[0])
+
+    return jax.lax.fori_loop(0, len(PATH_CHECKS), least, jnp.full_like(like, jnp.inf))
+
+
+# --------------------------------------------------------------------------------------------
+# Analytic rounded cylinder
+# --------------------------------------------------------------------------------------------
+
+
+def _rounded_cylinder_parts(p, h, r):
+    """Value, outward unit normal and the half-plane gradient ``g = (∂φ/∂ρ, ∂φ/∂|z|)`` of the
+    cylinder of radius ``h[0]`` and half height ``h[2]`` (axis z), edges rounded by ``r``: the
+    rounded box's formula in the half-plane ``(ρ, |z|)`` with the same tie-breaking (the first
+    coordinate; on the axis the radial direction is +x, on z = 0 the normal's z sign is +)."""
+    rho = safe_norm(p[..., :2])
+    q = jnp.stack([rho - (h[0] - r), jnp.abs(p[..., 2]) - (h[2] - r)], axis=-1)
+    q_pos = jnp.maximum(q, 0.0)
+    out_len = safe_norm(q_pos)
+    phi = out_len + jnp.minimum(jnp.max(q, axis=-1), 0.0) - r
+    outside = out_len > 0.0
+    g_out = q_pos / jnp.where(outside, out_len, 1.0)[..., None]
+    g_in = jax.nn.one_hot(jax.lax.argmax(q, q.ndim - 1, jnp.int32), 2, dtype=q.dtype)
+    g = jnp.where(outside[..., None], g_out, g_in)
+    off_axis = rho > 0.0
+    radial = jnp.where(
+        off_axis[..., None],
+        p[..., :2] / jnp.where(off_axis, rho, 1.0)[..., None],
+        jnp.array([1.0, 0.0], p.dtype),
+    )
+    n = jnp.concatenate([g[..., :1] * radial, g[..., 1:] * jnp.where(p[..., 2:] >= 0.0, 1.0, -1.0)], axis=-1)
+    return phi, n, g
+
+
+@jax.custom_jvp
+def _rounded_cylinder(p, h, r):
+    return _rounded_cylinder_parts(p, h, r)[0]
+
+
+@_rounded_cylinder.defjvp
+def _rounded_cylinder_jvp(primals, tangents):
+    # As the box's: the exact one-sided gradient, a unit vector everywhere. ∂φ/∂R = −g_ρ,
+    # ∂φ/∂H = −g_z, ∂φ/∂r = g_ρ + g_z − 1 (h[1] is not used).
+    p, h, r = primals
+    dp, dh, dr = tangents
+    phi, n, g = _rounded_cylinder_parts(p, h, r)
+    dphi = jnp.sum(n * dp, -1) - g[..., 0] * dh[..., 0] - g[..., 1] * dh[..., 2] + (jnp.sum(g, -1) - 1.0) * dr
+    return phi, dphi
+
+
+@jax.jit
+def _rounded_cylinder_and_normal(p, h, r):
+    return _rounded_cylinder(p, h, r), _rounded_cylinder_parts(p, h, r)[1]
+
+
+class RoundedCylinderSDF(AbstractSDF):
+    """The analytic cylinder about the z axis centred at the origin, its two circular edges
+    rounded.
+
+    Attributes:
+        half: (3,) radius, radius, half height, mm.   radius: () fillet radius, mm
+            (``0 ≤ radius ≤ min(half)``, not checked: the arguments may be traced).
+    """
+
+    half: jax.Array
+    radius: jax.Array
+
+    def __call__(self, q):
+        dtype = _float_dtype(q, self.half, self.radius)
+        return _rounded_cylinder_and_normal(
+            jnp.asarray(q, dtype), jnp.asarray(self.half, dtype), jnp.asarray(self.radius, dtype)
+        )
+
+    def least_along(self, points, like, margin: float):
+        return _least_in_loop(self, points, like)
 
 
 # --------------------------------------------------------------------------------------------

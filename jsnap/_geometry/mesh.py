@@ -115,11 +115,16 @@ class TetMesh:
         points: (n, 3) float64 node positions, mm.
         cells: (m, 4) int64 node indices, positively oriented (signed volume > 0).
         base_nodes: (k,) int64 sorted indices of the nodes on the fixed base z = 0.
+        sliding: symmetry planes, ``((nodes (k,) int64, unit normal (3,)), ...)``: those nodes
+            move in their plane only (no displacement along its normal). A preset cut to a
+            sector of an axisymmetric part holds its two cut faces so; their faces are not part
+            of the surface contact can reach (:meth:`contact_faces`).
     """
 
     points: np.ndarray
     cells: np.ndarray
     base_nodes: np.ndarray
+    sliding: tuple = ()
 
     def __post_init__(self):
         # Coerce once so downstream code can rely on the dtypes (eq=False: arrays have no
@@ -131,6 +136,13 @@ class TetMesh:
             raise ValueError(f"points must be (n, 3), got {self.points.shape}")
         if self.cells.ndim != 2 or self.cells.shape[1] != 4:
             raise ValueError(f"cells must be (m, 4), got {self.cells.shape}")
+        planes = []
+        for nodes, normal in self.sliding:
+            normal = np.asarray(normal, dtype=np.float64)
+            if normal.shape != (3,) or not np.isclose(np.linalg.norm(normal), 1.0):
+                raise ValueError(f"a sliding plane's normal must be a unit (3,) vector, got {normal!r}")
+            planes.append((np.unique(np.asarray(nodes, dtype=np.int64)), normal))
+        object.__setattr__(self, "sliding", tuple(planes))
 
     def volumes(self) -> np.ndarray:
         """(m,) element volumes, mm³."""
@@ -143,6 +155,17 @@ class TetMesh:
         _, first, counts = np.unique(np.sort(faces, axis=1), axis=0, return_index=True, return_counts=True)
         at = np.sort(first[counts == 1])
         return (faces[at], at // len(TET_FACES)) if owners else faces[at]
+
+    def contact_faces(self) -> np.ndarray:
+        """(f, 3) :meth:`boundary_faces` less those on a sliding (symmetry) plane: the cut faces
+        of a sector are inside the whole part, nothing touches them."""
+        faces = self.boundary_faces()
+        keep = np.ones(faces.shape[0], dtype=bool)
+        for nodes, _ in self.sliding:
+            on = np.zeros(self.points.shape[0], dtype=bool)
+            on[nodes] = True
+            keep &= ~np.all(on[faces], axis=1)
+        return faces[keep]
 
     def boundary_face_areas(self) -> np.ndarray:
         """(f,) areas of :meth:`boundary_faces`, mm²."""

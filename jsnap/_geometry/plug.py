@@ -1,4 +1,5 @@
-"""The rigid part of the preset scenes: a rounded block sized from the connector (host side).
+"""The rigid parts of the preset scenes: a rounded block or a rounded cylinder sized from the
+connector (host side).
 
 Units: mm.
 """
@@ -7,28 +8,62 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["Plug", "rounded_box_mesh"]
+__all__ = ["SHAPES", "Plug", "rounded_box_mesh", "rounded_cylinder_mesh"]
+
+SHAPES = ("box", "cylinder")
 
 
 class Plug:
-    """A preset rigid part: a rounded box and where it starts.
+    """A preset rigid part: a rounded box or a rounded cylinder (axis z), and where it starts.
 
     Attributes:
-        half: (3,) half extents, mm.   radius: fillet radius, mm.
+        half: (3,) half extents, mm (a cylinder's: radius, radius, half height).
+        radius: fillet radius of its edges, mm.
         start: (3,) centre at t = 0, mm (in the frame of the deformable part's base).
         rotation: (4,) its orientation, a unit quaternion (w, x, y, z), kept along a straight
             insertion (the box lid's tilted box); None: axis-aligned.
+        shape: ``"box"`` or ``"cylinder"``.
     """
 
-    def __init__(self, half, radius: float, start, rotation=None):
+    def __init__(self, half, radius: float, start, rotation=None, shape: str = "box"):
+        if shape not in SHAPES:
+            raise ValueError(f"shape = {shape!r}: must be one of {', '.join(SHAPES)}")
         self.half = np.asarray(half, dtype=np.float64)
         self.radius = float(radius)
         self.start = np.asarray(start, dtype=np.float64)
         self.rotation = None if rotation is None else np.asarray(rotation, dtype=np.float64)
+        self.shape = shape
 
     def mesh(self):
         """Its closed triangle mesh (``trimesh.Trimesh``), in its own frame."""
+        if self.shape == "cylinder":
+            return rounded_cylinder_mesh(self.half[0], self.half[2], self.radius)
         return rounded_box_mesh(self.half, self.radius)
+
+
+def rounded_cylinder_mesh(radius: float, half_height: float, fillet: float, sections: int = 128):
+    """Closed triangle mesh of the cylinder ``x² + y² ≤ radius²``, ``|z| ≤ half_height`` with
+    its two circular edges rounded by ``fillet`` (mm): its profile (flat ends, fillet arcs of 8
+    segments, the side) turned about z in ``sections`` steps. The vertices lie on the exact
+    surface, the facets inside it by at most the chord error ``radius (1 - cos(pi / sections))``.
+    """
+    import trimesh  # host library: only builds need the plug's surface
+
+    r, h, f = float(radius), float(half_height), float(fillet)
+    if not (r > 0 and h > 0 and 0 <= f <= min(r, h)):
+        raise ValueError(f"need radius, half_height > 0 and 0 <= fillet <= both, got {r}, {h}, {f}")
+    arc = np.linspace(0.0, 0.5 * np.pi, 9) if f > 0 else np.zeros(1)
+    bottom = [(r - f + f * np.sin(t), -h + f - f * np.cos(t)) for t in arc]
+    top = [(r - f + f * np.cos(t), h - f + f * np.sin(t)) for t in arc]
+    profile = np.array([(0.0, -h), *bottom, *top, (0.0, h)])
+    # trimesh turns a (rho, z) line about z; a profile from the axis back to the axis closes it.
+    mesh = trimesh.creation.revolve(profile, sections=sections)
+    mesh.merge_vertices()
+    if not (mesh.is_watertight and mesh.is_winding_consistent):
+        raise RuntimeError("the rounded cylinder's surface is not closed")
+    if mesh.volume < 0:
+        mesh.invert()
+    return mesh
 
 
 def rounded_box_mesh(half_extents, radius, subdivisions=4):

@@ -22,13 +22,24 @@ apart: it keeps its own contact sampling along its section (``jsnap._build.sampl
   back behind it. The contact moves away from the root as the lip travels, so the arm grows
   softer under it (a cantilever loaded at a travelling point, not at its tip).
 
-The clip, the lid and the latch are tet-meshed with gmsh (the mesher the parts from files use)
+* ``annular`` — a tube (bore ``radius``, wall ``thickness``) fixed at its end ``z = 0`` with an
+  inward lip at its mouth (the cantilever's hook section turned about the tube's axis, its
+  retention face ``length`` above the fixed end), snapped over a rigid bead (a cylinder of the
+  bore's radius with rounded edges) pushed down the axis: caps, pens, bottle closures. The
+  part is a ``sector`` (degrees) of the ring whose two cut faces slide on their planes
+  (``TetMesh.sliding``): exact for the axisymmetric straight insertion, and the contact line it
+  carries is ``sector / 360`` of the ring's, so the model stays small; its forces are the
+  sector's (the whole ring's axial force is ``360 / sector`` times it). The sector is one
+  element wide (its facets' sagitta a small fraction of the undercut, checked on load).
+
+The clip, the lid, the latch and the annular snap are tet-meshed with gmsh (the mesher the parts from files use)
 from their exact CAD solids, section polygons extruded over y (and fused), finer along the
 hooks' (catch's) edges (see :func:`_hook_size`). Units: mm, degrees.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -42,6 +53,8 @@ from jsnap._geometry.plug import Plug
 __all__ = [
     "PRESETS",
     "Preset",
+    "annular_section",
+    "annular_sliding",
     "box_lid_pieces",
     "box_lid_tilt",
     "clip_section",
@@ -59,6 +72,7 @@ PRESETS = (
     "two_hook_clip",
     "box_lid",
     "cable_latch",
+    "annular",
 )  # the keys of jsnap._geometry.scene.CONNECTORS
 
 
@@ -68,7 +82,8 @@ class Preset:
 
     Attributes:
         mesh: the deformable part (mm), its fixed region in ``base_nodes``.
-        plug: the default rigid part (a block with rounded edges) and its start.
+        plug: the default rigid part (a block or, for the annular snap, a cylinder with rounded
+            edges) and its start.
         stroke: the default travel along −z, mm: the rigid part passes 0.3 mm below the
             retention faces (it latches).
     """
@@ -81,7 +96,8 @@ class Preset:
 def hook_of(c: Mapping) -> Cantilever:
     """The hook section of a preset's ``[connector]`` table (the cantilever's arm, each of the
     clip's arms; the latch's catch with the arm below it, its ``length`` the height of the
-    retention face above the latch's free end). Raises ``ValueError`` naming the key."""
+    retention face above the latch's free end; the annular snap's wall and lip, ``x`` the depth
+    into the wall from the bore). Raises ``ValueError`` naming the key."""
     if "catch_position" in c:
         if not 0 < c["catch_position"] < c["length"]:
             raise ValueError(
@@ -91,7 +107,8 @@ def hook_of(c: Mapping) -> Cantilever:
     return Cantilever(
         length=c["length"] - c["catch_position"] if "catch_position" in c else c["length"],
         thickness=c["thickness"],
-        width=c["width"],
+        # The annular lip's width: its arc at the bore over the sector.
+        width=c["width"] if "width" in c else c["radius"] * math.radians(c["sector"]),
         undercut=c["undercut"],
         lead_angle=c["lead_angle"],
         return_angle=c["return_angle"],
@@ -146,6 +163,13 @@ def connector_features(kind: str, c: Mapping) -> dict[str, float]:
                 f"does not model; make the gap more than {tip:.3g} mm (or the catch nearer the free end)"
             )
         return {"thickness": c["thickness"], "width": c["width"], "gap": c["gap"]}
+    if kind == "annular":
+        if not c["undercut"] < c["radius"]:
+            raise ValueError(
+                f"connector.undercut = {c['undercut']!r}: the lip would close the bore (connector.radius = "
+                f"{c['radius']:g} mm); it must be less than the radius"
+            )
+        return {"thickness": c["thickness"]}
     raise ValueError(f"connector.type = {kind!r}: must be one of {', '.join(PRESETS)}")
 
 
@@ -214,6 +238,25 @@ def latch_section(c: Mapping) -> np.ndarray:
     )
 
 
+def annular_section(c: Mapping) -> np.ndarray:
+    """(7, 2) section (r, z) of the annular snap's tube wall and lip, counter-clockwise from the
+    bore at the fixed end, mm: the wall ``r in [radius, radius + thickness]``, the lip reaching
+    ``undercut`` into the bore at its mouth."""
+    sec = _mirror_hook(hook_of(c), c["radius"])  # (R+h,0) (R+h,zt) (R,zt) (flat end) (ret) (R,L) (R,0)
+    return sec[[6, 0, 1, 2, 3, 4, 5]]
+
+
+def annular_sliding(points: np.ndarray, sector: float) -> tuple:
+    """The two cut faces of an annular sector (``sector`` degrees centred on +x) as sliding
+    planes ``((nodes, unit normal), ...)`` for :class:`TetMesh`."""
+    tol = 1e-9 * float(np.linalg.norm(np.ptp(points, axis=0)))
+    planes = []
+    for phi in (-0.5 * math.radians(sector), 0.5 * math.radians(sector)):
+        normal = np.array([-math.sin(phi), math.cos(phi), 0.0])
+        planes.append((np.flatnonzero(np.abs(points @ normal) <= tol), normal))
+    return tuple(planes)
+
+
 def latch_tip_deflection(c: Mapping) -> float:
     """How far the latch's free end moves when the catch is pushed in by the undercut, mm:
     a cantilever of length ``length`` loaded at distance ``l`` from its root (the top of the
@@ -224,11 +267,13 @@ def latch_tip_deflection(c: Mapping) -> float:
     return c["undercut"] * (3.0 * L - arm) / (2.0 * arm)
 
 
-def _gmsh_mesh(pieces, *, size: float, fine: float, fine_box) -> tuple:
+def _gmsh_mesh(pieces, *, size: float, fine: float, fine_box, turn: float | None = None) -> tuple:
     """Tetrahedra (points (n, 3), cells (m, 4)) of the union of section polygons (x, z)
-    extruded over y: ``pieces`` = [(section (k, 2), y0, y1), ...]; elements of ``size``,
-    ``fine`` on the edges that lie in ``fine_box`` = ((x0, z0), (x1, z1)) (the hooks), growing
-    to ``size`` within ``2 size`` of them."""
+    extruded over y: ``pieces`` = [(section (k, 2), y0, y1), ...]; or, with ``turn`` (degrees,
+    less than 180), of the one section (r, z) turned about the z axis by that angle, centred on
+    +x. Elements of
+    ``size``, ``fine`` on the edges that lie in ``fine_box`` = ((x0, z0), (x1, z1)) (the
+    hooks), growing to ``size`` within ``2 size`` of them."""
     import gmsh
 
     initialised = gmsh.isInitialized()
@@ -243,7 +288,12 @@ def _gmsh_mesh(pieces, *, size: float, fine: float, fine_box) -> tuple:
             pts = [occ.addPoint(x, y0, z) for x, z in section]
             lines = [occ.addLine(pts[i], pts[(i + 1) % len(pts)]) for i in range(len(pts))]
             face = occ.addPlaneSurface([occ.addCurveLoop(lines)])
-            solids += [e for e in occ.extrude([(2, face)], 0.0, y1 - y0, 0.0) if e[0] == 3]
+            if turn is None:
+                solids += [e for e in occ.extrude([(2, face)], 0.0, y1 - y0, 0.0) if e[0] == 3]
+            else:
+                angle = math.radians(turn)
+                solids += [e for e in occ.revolve([(2, face)], 0, 0, 0, 0, 0, 1, angle) if e[0] == 3]
+                occ.rotate(solids[-1:], 0, 0, 0, 0, 0, 1, -0.5 * angle)
         if len(solids) > 1:
             # One solid whose pieces share their nodes where they touch.
             occ.fuse(solids[:1], solids[1:])
@@ -317,8 +367,13 @@ def default_rigid(kind: str, c: Mapping, plug: Mapping) -> Plug:
     with rounded edges (cantilever: its face ``x = h_tip`` in the plane of the arm's outer face at
     the tip, so it pushes the hook by the full undercut; clip: exactly ``gap`` wide, centred,
     pushing both hooks; latch: like the cantilever, the jack's lip with its face in the plane of
-    the arm's outer face), ``plug.clearance`` above the hook's (catch's) top."""
+    the arm's outer face; annular: a cylinder of the bore's radius on the axis),
+    ``plug.clearance`` above the hook's (catch's, lip's) top."""
     hook = hook_of(c)
+    if kind == "annular":
+        half = np.array([c["radius"], c["radius"], 0.5 * plug["height"]])
+        start = [0.0, 0.0, hook.z_top + plug["clearance"] + half[2]]
+        return Plug(half, plug["fillet"], start, shape="cylinder")
     if kind in ("cantilever", "cable_latch"):
         thick = plug["thickness"] or 1.25 * hook.undercut
         x = hook.h_tip + 0.5 * thick
@@ -372,4 +427,11 @@ def generate(kind: str, c: Mapping, plug: Mapping, mesh_size: float) -> Preset:
         half = 0.5 * hook.width
         points, cells = _gmsh_mesh([(latch_section(c), -half, half)], size=mesh_size, fine=fine, fine_box=box)
         return Preset(_finish(points, cells, -c["gap"] - c["body_thickness"], axis=0), rigid, stroke)
+    if kind == "annular":
+        lip = ((-np.inf, hook.length), (np.inf, np.inf))
+        sec = annular_section(c)
+        points, cells = _gmsh_mesh([(sec, 0.0, 0.0)], size=mesh_size, fine=fine, fine_box=lip, turn=c["sector"])
+        mesh = _finish(points, cells, 0.0)
+        sliding = annular_sliding(mesh.points, c["sector"])
+        return Preset(TetMesh(mesh.points, mesh.cells, mesh.base_nodes, sliding), rigid, stroke)
     raise ValueError(f"connector.type = {kind!r}: must be one of {', '.join(PRESETS)}")

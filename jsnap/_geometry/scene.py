@@ -293,6 +293,43 @@ CONNECTORS: dict[str, dict[str, Key]] = {
         },
         "length thickness width catch_position undercut lead_angle return_angle flat gap body_thickness",
     ),
+    "annular": _ordered(
+        {
+            **_hook_keys("tube", "radial"),
+            "length": _pos("mm", 4.0, "L, from the tube's fixed end (z = 0) up to the lip's retention face"),
+            "thickness": _pos("mm", 1.0, "h, the tube's wall thickness (radial)"),
+            "undercut": _pos("mm", 0.12, "y_u, how far the lip reaches into the bore (radial)"),
+            "lead_angle": Key(
+                float, 30.0, "deg", 0.0, 90.0, True, True, doc="alpha, the lip's lead ramp to the axis"
+            ),
+            "return_angle": Key(
+                float,
+                90.0,
+                "deg",
+                0.0,
+                90.0,
+                True,
+                False,
+                doc="alpha', the lip's retention face (90 = square: the bead stays in)",
+            ),
+            "flat": _nonneg("mm", 0.1, "the lip's land between its retention face and lead ramp"),
+            "radius": _pos("mm", 3.0, "R, the bore's radius (and the rigid bead's)"),
+            "sector": Key(
+                float,
+                2.0,
+                "deg",
+                0.0,
+                90.0,
+                True,
+                False,
+                doc="the part modelled, a sector of the ring one element wide: its cut faces slide on their "
+                "planes (exact for the straight insertion along the axis); its forces are the sector's, the "
+                "whole ring's axial force is 360 / sector times it. Its facets are chords of the ring: their "
+                "sagitta radius (1 - cos(sector / 2)) may be at most 2 % of the undercut",
+            ),
+        },
+        "length thickness radius undercut lead_angle return_angle flat sector",
+    ),
 }
 
 SCHEMA: dict[str, dict[str, Key]] = {
@@ -301,8 +338,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
             str,
             choices=tuple(CONNECTORS),
             doc="connector preset: the canonical cantilever hook, two hooks facing each other on a "
-            "base block (two_hook_clip), a lid with four hooks pressed onto a box (box_lid), or a "
-            "cable plug's latch (cable_latch)",
+            "base block (two_hook_clip), a lid with four hooks pressed onto a box (box_lid), a "
+            "cable plug's latch (cable_latch), or a tube with an inward lip snapped over a bead (annular)",
         ),
     },
     "part": {
@@ -347,6 +384,18 @@ SCHEMA: dict[str, dict[str, Key]] = {
             1,
             doc="contact buffer slots: the most points in contact in one step (at most the number of "
             "candidate points is used)",
+        ),
+        "stabilisation": Key(
+            float,
+            0.0,
+            "",
+            0.0,
+            1.0,
+            doc="fraction of a point's penetration into the rigid part removed per step. 0: the contact "
+            "holds velocities only, which is passive; where contact slides around the rigid part's rounded "
+            "edge for many steps (the annular lip) the linearised gap drifts inward, and a fraction of it "
+            "removed per step stops the drift; pushing points out does work, which the rollout's energy "
+            "check flags where it is too much",
         ),
         "width_spacing": _pos("mm", 1.0, "spacing of the contact candidate lines across the connector's width"),
         "solver": Key(
@@ -479,6 +528,12 @@ SCHEMA: dict[str, dict[str, Key]] = {
 MIN_STEPS = 20
 # Elements more than this many times the thinnest feature leave it unresolved altogether.
 _COARSEST = 4.0
+# The annular lip's hoop strain (undercut / bore radius) beyond which a linear model is
+# meaningless (design guides allow a few percent).
+_MAX_HOOP_STRAIN = 0.1
+# The annular sector's facets stand inside the ring by their sagitta: at most this fraction of
+# the undercut (2 % changes the radial force by as much).
+_MAX_SAGITTA = 0.02
 # Tip deflection over arm length beyond which a linear (small-rotation) model is meaningless:
 # the tip would turn by ~1.5 y_u / L rad (0.375 rad, 21 degrees).
 _MAX_DEFLECTION_RATIO = 0.25
@@ -738,6 +793,44 @@ def _check_files(scene: Scene) -> None:
                 raise SceneError(f"{dotted} = {scene[section][key]!r}: no such file ({path})")
 
 
+def _check_annular(scene: Scene) -> None:
+    """The annular snap's own rules: a hoop strain a linear model can carry; a sector of the
+    ring only under the motion its symmetry holds for (its preset bead straight down the axis)."""
+    c, m = scene["connector"], scene["motion"]
+    if c["undercut"] > _MAX_HOOP_STRAIN * c["radius"]:
+        raise SceneError(
+            f"connector.undercut = {c['undercut']!r}: the lip must stretch to the bore's radius "
+            f"{c['radius']:g} mm, a hoop strain of {100 * c['undercut'] / c['radius']:.0f} % (more than "
+            f"{100 * _MAX_HOOP_STRAIN:g} %), far beyond jsnap's linear model and any plastic snap-fit; use a "
+            "smaller undercut"
+        )
+    for key in ("thickness", "width"):
+        if scene["plug"] and scene["plug"][key] is not None:
+            raise SceneError(
+                f"plug.{key} = {scene['plug'][key]!r}: the annular preset's rigid part is a bead of the bore's "
+                "radius (connector.radius); plug.thickness and plug.width size the other presets' block"
+            )
+    sagitta = c["radius"] * (1 - math.cos(math.radians(0.5 * c["sector"])))
+    if sagitta > _MAX_SAGITTA * c["undercut"]:
+        widest = 2 * math.degrees(math.acos(1 - _MAX_SAGITTA * c["undercut"] / c["radius"]))
+        raise SceneError(
+            f"connector.sector = {c['sector']!r}: the sector's facets, chords of the ring, would stand "
+            f"{1e3 * sagitta:.2g} um inside it, {100 * sagitta / c['undercut']:.2g} % of connector.undercut "
+            f"(the force follows the undercut); use connector.sector <= {widest:.3g} degrees"
+        )
+    axial = m["direction"] is None or np.allclose(
+        np.asarray(m["direction"]) / np.linalg.norm(m["direction"]), [0, 0, -1]
+    )
+    moved = [k for k in ("waypoints", "trajectory") if m[k] is not None]
+    if scene["rigid"] or moved or not axial:
+        what = "a [rigid] file" if scene["rigid"] else f"motion.{moved[0]}" if moved else "motion.direction"
+        raise SceneError(
+            f"connector.sector = {c['sector']!r}: a sector of the ring is exact only for the preset bead "
+            f"pushed straight down the axis, and {what} breaks that symmetry (jsnap does not model the whole "
+            "ring)"
+        )
+
+
 def _check_consistency(scene: Scene) -> None:
     """Checks that involve several keys: geometry that cannot be built or cannot be modelled,
     plug sizes, a motion too short for the time step, elements too coarse for the features."""
@@ -748,7 +841,9 @@ def _check_consistency(scene: Scene) -> None:
             features = connector_features(c["type"], c)  # the hook section's checks (hook_of) first
         except ValueError as err:
             raise SceneError(str(err)) from None
-        if c["undercut"] > _MAX_DEFLECTION_RATIO * c["length"]:
+        if c["type"] == "annular":
+            _check_annular(scene)
+        elif c["undercut"] > _MAX_DEFLECTION_RATIO * c["length"]:
             raise SceneError(
                 f"connector.undercut = {c['undercut']!r}: the arm must bend its tip {c['undercut']:g} mm on a "
                 f"{c['length']:g} mm length (more than {_MAX_DEFLECTION_RATIO:g} of it): the tip would turn by "
