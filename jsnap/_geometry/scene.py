@@ -203,6 +203,15 @@ def _hook_keys(arm: str, bending: str) -> dict[str, Key]:
     }
 
 
+def _angle_keys(lead: str, ret: str) -> dict[str, Key]:
+    """A preset's lead and return angles with defaults (30 and 90 degrees), ``lead`` and
+    ``ret`` their docs."""
+    return {
+        "lead_angle": Key(float, 30.0, "deg", 0.0, 90.0, True, True, doc=lead),
+        "return_angle": Key(float, 90.0, "deg", 0.0, 90.0, True, False, doc=ret),
+    }
+
+
 def _ordered(keys: dict[str, Key], order: str) -> dict[str, Key]:
     return {k: keys[k] for k in order.split()}
 
@@ -267,25 +276,9 @@ CONNECTORS: dict[str, dict[str, Key]] = {
                 "mm", 6.0, "distance from the latch's root down to the catch's retention face"
             ),
             "undercut": _pos("mm", 0.6, "y_u, how far the catch protrudes beyond the arm's outer face (x)"),
-            "lead_angle": Key(
-                float,
-                30.0,
-                "deg",
-                0.0,
-                90.0,
-                True,
-                True,
-                doc="alpha, the catch's lead ramp to the motion",
-            ),
-            "return_angle": Key(
-                float,
-                90.0,
-                "deg",
-                0.0,
-                90.0,
-                True,
-                False,
-                doc="alpha', the catch's retention face (90 = square: the plug stays in until pressed)",
+            **_angle_keys(
+                "alpha, the catch's lead ramp to the motion",
+                "alpha', the catch's retention face (90 = square: the plug stays in until pressed)",
             ),
             "flat": _nonneg("mm", 0.3, "the catch's land between its retention face and lead ramp"),
             "gap": _pos("mm", 1.6, "clearance between the arm's inner face and the plug body (x)"),
@@ -299,18 +292,9 @@ CONNECTORS: dict[str, dict[str, Key]] = {
             "length": _pos("mm", 4.0, "L, from the tube's fixed end (z = 0) up to the lip's retention face"),
             "thickness": _pos("mm", 1.0, "h, the tube's wall thickness (radial)"),
             "undercut": _pos("mm", 0.12, "y_u, how far the lip reaches into the bore (radial)"),
-            "lead_angle": Key(
-                float, 30.0, "deg", 0.0, 90.0, True, True, doc="alpha, the lip's lead ramp to the axis"
-            ),
-            "return_angle": Key(
-                float,
-                90.0,
-                "deg",
-                0.0,
-                90.0,
-                True,
-                False,
-                doc="alpha', the lip's retention face (90 = square: the bead stays in)",
+            **_angle_keys(
+                "alpha, the lip's lead ramp to the axis",
+                "alpha', the lip's retention face (90 = square: the bead stays in)",
             ),
             "flat": _nonneg("mm", 0.1, "the lip's land between its retention face and lead ramp"),
             "radius": _pos("mm", 3.0, "R, the bore's radius (and the rigid bead's)"),
