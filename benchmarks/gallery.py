@@ -324,7 +324,7 @@ def plot_materials(rows: dict, curves: dict, path: Path) -> None:
 
     styles = ["-", "--", ":", "-."]
     how = ", ".join(sorted({f"{r['method']} model, {r['dtype']}" for r in rows.values()}))
-    fig, ax = plt.subplots(figsize=(8.5, 5.2))
+    fig, ax = plt.subplots(figsize=(13, 5.2))
     for i, (preset, by_material) in enumerate(curves.items()):
         color = f"C{i}"
         for j, (name, (travel, F)) in enumerate(by_material.items()):
@@ -346,7 +346,7 @@ def plot_materials(rows: dict, curves: dict, path: Path) -> None:
         title=f"Insertion force of every preset for {len(MATERIALS)} materials ({how}; each scene's friction)",
     )
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7.5, loc="upper left")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the curves, not on them
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
