@@ -36,7 +36,7 @@ import numpy as np
 from _common import calculix_row, curve_stats, load_scene, plot_speed, speed, write_result
 
 import jsnap
-from jsnap._apps.simulate import design_guide_force
+from jsnap._apps.simulate import design_guide_force, ring_copies
 from jsnap._geometry.scene import default_scene_path
 
 jsnap.configure_xla_cpu()
@@ -68,10 +68,6 @@ def shell_radial_force(c: dict, E: float, nu: float) -> float:
     return 2 * math.pi * (c["radius"] - c["undercut"]) * 2 * beta**3 * D * c["undercut"]
 
 
-def _ring(scene) -> float:
-    return 360.0 / scene["connector"]["sector"]
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
@@ -89,7 +85,7 @@ def main(argv=None) -> int:
         return 0
     base = jsnap.load_scene(SCENE)
     c = base["connector"]
-    copies = _ring(base)
+    copies = ring_copies(base)
     out = {"scene": SCENE.name, "sector_deg": c["sector"], "ring_copies": copies, "accuracy": {}}
     curves = {}
     for mu in (0.0, 0.3):

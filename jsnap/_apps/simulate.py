@@ -81,30 +81,30 @@ def ring_copies(scene) -> float | None:
     return 360.0 / c["sector"] if c and c["type"] == "annular" else None
 
 
-def _annular_guide(c, E: float, nu: float, mu: float) -> tuple[float, float]:
-    """The design guide's annular snap (an elastic hub on a rigid shaft, the joint near the
-    hub's end): strain eps = y / d and mating force W = P (mu + tan a) / (1 - mu tan a) of the
-    whole ring, P = y d E X_N, X_N = 0.62 sqrt((k - 1) / (k + 1)) / ((k^2 + 1) / (k^2 - 1) + nu),
+def _annular_guide_force(c, E: float, nu: float, mu: float) -> float:
+    """The design guide's mating force of an annular snap (an elastic hub on a rigid shaft, the
+    joint near the hub's end), the whole ring's, N: W = P (mu + tan a) / (1 - mu tan a),
+    P = y d E X_N, X_N = 0.62 sqrt((k - 1) / (k + 1)) / ((k^2 + 1) / (k^2 - 1) + nu),
     k = d_o / d; y = 2 y_u the diametral undercut, d = 2 R, d_o = 2 (R + h)."""
     y, d, k = 2 * c["undercut"], 2 * c["radius"], (c["radius"] + c["thickness"]) / c["radius"]
     X = 0.62 * math.sqrt((k - 1) / (k + 1)) / ((k**2 + 1) / (k**2 - 1) + nu)
     ta = math.tan(math.radians(c["lead_angle"]))
-    return y / d, y * d * E * X * (mu + ta) / (1 - mu * ta)
+    return y * d * E * X * (mu + ta) / (1 - mu * ta)
 
 
 def design_guide_strain(scene) -> float | None:
     """Snap-fit design-guide strain at the root when the hook is deflected by the undercut:
     eps = 1.5 h y / L^2 (constant arm) or h y / (1.09 L^2) (arm tapered to h/2), dimensionless
     (None for a part from a file). For the cable latch L is the catch's distance from the root;
-    for the annular snap the hoop strain y / d (:func:`_annular_guide`).
+    for the annular snap the guide's hoop strain y / d = undercut / radius (y = 2 y_u the
+    diametral undercut, d = 2 R).
 
     Beam theory for a deflection y of a cantilever of length L and root thickness h at its
     load: no stress concentration at the root, the root clamped.
     """
     c = scene["connector"]
     if c and c["type"] == "annular":
-        m = scene["material"]
-        return _annular_guide(c, m["youngs_modulus"], m["poissons_ratio"], 0.0)[0]
+        return c["undercut"] / c["radius"]
     if not c or c["type"] not in _HOOKS:
         return None
     L, h, y = _lever(scene), c["thickness"], c["undercut"]
@@ -118,11 +118,11 @@ def design_guide_force(scene) -> float | None:
 
     P = b h^2 E eps / (6 L) with eps from :func:`design_guide_strain`; a beam-theory estimate
     (see the validation page for how far it is off). For the annular snap, the ring's force
-    (:func:`_annular_guide`) over :func:`ring_copies`: the modelled sector's share.
+    (:func:`_annular_guide_force`) over :func:`ring_copies`: the modelled sector's share.
     """
     c, m = scene["connector"], scene["material"]
     if c and c["type"] == "annular":
-        W = _annular_guide(c, m["youngs_modulus"], m["poissons_ratio"], scene["contact"]["friction"])[1]
+        W = _annular_guide_force(c, m["youngs_modulus"], m["poissons_ratio"], scene["contact"]["friction"])
         return W / ring_copies(scene)
     if not c or c["type"] not in _HOOKS:
         return None

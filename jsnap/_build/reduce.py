@@ -228,6 +228,15 @@ def _dofs(nodes: np.ndarray) -> np.ndarray:
     return (3 * np.asarray(nodes)[:, None] + np.arange(3)).ravel()
 
 
+def _own_sliding(asm: Assembly, seg: Segmentation, i: int) -> sp.csr_matrix:
+    """Segment ``i``'s part of the sliding planes' springs (nodal, see fem.sliding_penalty): a
+    node's go to the first segment that has a copy of it, so the segments' sum is the part's."""
+    first = np.full(asm.nodes.shape[0], len(seg.nodes))
+    for j in range(len(seg.nodes) - 1, -1, -1):
+        first[seg.nodes[j]] = j
+    return (sp.diags(np.repeat(first == i, 3).astype(np.float64)) @ asm.sliding).tocsr()
+
+
 def segment_blocks(asm: Assembly, seg: Segmentation, i: int):
     """Parameter-free blocks of segment ``i`` from its own elements only.
 
@@ -238,17 +247,11 @@ def segment_blocks(asm: Assembly, seg: Segmentation, i: int):
     elements = np.flatnonzero(seg.element_segment == i)
     basis = skfem.Basis(asm.basis.mesh, skfem.ElementVector(_ELEMENTS[asm.element]()), elements=elements)
     dofs = _dofs(seg.nodes[i])
-    # A sliding plane's springs (nodal, see fem.sliding_penalty) go to the first segment that
-    # has a copy of the node: the segments' sum is the whole part's penalty.
-    first = np.full(asm.nodes.shape[0], len(seg.nodes))
-    for j in range(len(seg.nodes) - 1, -1, -1):
-        first[seg.nodes[j]] = j
-    mine = np.repeat(first == i, 3).astype(np.float64)
     out, react = [], []
     for form in (_k_lam, _k_mu, _m1):
         A = form.assemble(basis).tocsr()
         if form is _k_mu and asm.sliding.nnz:
-            A = A + sp.diags(mine) @ asm.sliding
+            A = A + _own_sliding(asm, seg, i)
         out.append(A[dofs][:, dofs].tocsr())
         react.append(A[asm.fixed][:, dofs].tocsr())
     return out, react

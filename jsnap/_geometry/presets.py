@@ -32,9 +32,10 @@ apart: it keeps its own contact sampling along its section (``jsnap._build.sampl
   sector's (the whole ring's axial force is ``360 / sector`` times it). The sector is one
   element wide (its facets' sagitta a small fraction of the undercut, checked on load).
 
-The clip, the lid, the latch and the annular snap are tet-meshed with gmsh (the mesher the parts from files use)
-from their exact CAD solids, section polygons extruded over y (and fused), finer along the
-hooks' (catch's) edges (see :func:`_hook_size`). Units: mm, degrees.
+The clip, the lid, the latch and the annular snap are tet-meshed with gmsh (the mesher the
+parts from files use) from their exact CAD solids, section polygons extruded over y (and
+fused) or turned about z, finer along the hooks' (catch's, lip's) edges (see
+:func:`_hook_size`). Units: mm, degrees.
 """
 
 from __future__ import annotations
@@ -271,9 +272,8 @@ def _gmsh_mesh(pieces, *, size: float, fine: float, fine_box, turn: float | None
     """Tetrahedra (points (n, 3), cells (m, 4)) of the union of section polygons (x, z)
     extruded over y: ``pieces`` = [(section (k, 2), y0, y1), ...]; or, with ``turn`` (degrees,
     less than 180), of the one section (r, z) turned about the z axis by that angle, centred on
-    +x. Elements of
-    ``size``, ``fine`` on the edges that lie in ``fine_box`` = ((x0, z0), (x1, z1)) (the
-    hooks), growing to ``size`` within ``2 size`` of them."""
+    +x. Elements of ``size``, ``fine`` on the edges that lie in ``fine_box`` = ((x0, z0),
+    (x1, z1)) (the hooks), growing to ``size`` within ``2 size`` of them."""
     import gmsh
 
     initialised = gmsh.isInitialized()
@@ -338,8 +338,9 @@ def _fixed_below(points: np.ndarray, value: float, axis: int) -> np.ndarray:
     return np.flatnonzero(points[:, axis] <= value + tol)
 
 
-def _finish(points, cells, fixed: float, axis: int = 2) -> TetMesh:
-    """The mesh with positive volumes, its fixed region the nodes at ``points[:, axis] <= fixed``."""
+def _finish(points, cells, fixed: float, axis: int = 2, sliding: tuple = ()) -> TetMesh:
+    """The mesh with positive volumes, its fixed region the nodes at ``points[:, axis] <= fixed``
+    and its ``sliding`` planes."""
     vol = np.einsum(
         "ij,ij->i",
         np.cross(points[cells[:, 1]] - points[cells[:, 0]], points[cells[:, 2]] - points[cells[:, 0]]),
@@ -347,7 +348,7 @@ def _finish(points, cells, fixed: float, axis: int = 2) -> TetMesh:
     )
     cells = np.where((vol < 0)[:, None], cells[:, [0, 2, 1, 3]], cells)
     check_quality(points, cells, min_quality=0.02)
-    return TetMesh(points=points, cells=cells, base_nodes=_fixed_below(points, fixed, axis))
+    return TetMesh(points, cells, _fixed_below(points, fixed, axis), sliding)
 
 
 def _hook_size(hook: Cantilever, size: float) -> float:
@@ -412,14 +413,15 @@ def generate(kind: str, c: Mapping, plug: Mapping, mesh_size: float) -> Preset:
     if kind == "cantilever":
         return Preset(mesh_cantilever(hook, mesh_size), rigid, stroke)
     fine = _hook_size(hook, mesh_size)
+    above_root = ((-np.inf, hook.length), (np.inf, np.inf))  # the hooks' (lip's) edges
     if kind == "two_hook_clip":
-        hooks = ((-np.inf, hook.length), (np.inf, np.inf))
         half = 0.5 * hook.width
-        points, cells = _gmsh_mesh([(clip_section(c), -half, half)], size=mesh_size, fine=fine, fine_box=hooks)
+        points, cells = _gmsh_mesh(
+            [(clip_section(c), -half, half)], size=mesh_size, fine=fine, fine_box=above_root
+        )
         return Preset(_finish(points, cells, -c["base_thickness"]), rigid, stroke)
     if kind == "box_lid":
-        hooks = ((-np.inf, hook.length), (np.inf, np.inf))
-        points, cells = _gmsh_mesh(box_lid_pieces(c), size=mesh_size, fine=fine, fine_box=hooks)
+        points, cells = _gmsh_mesh(box_lid_pieces(c), size=mesh_size, fine=fine, fine_box=above_root)
         return Preset(_finish(points, cells, -c["lid_thickness"]), rigid, stroke)
     if kind == "cable_latch":
         # Finer on the catch's edges only (the arm's outer face continues above and below it).
@@ -428,10 +430,7 @@ def generate(kind: str, c: Mapping, plug: Mapping, mesh_size: float) -> Preset:
         points, cells = _gmsh_mesh([(latch_section(c), -half, half)], size=mesh_size, fine=fine, fine_box=box)
         return Preset(_finish(points, cells, -c["gap"] - c["body_thickness"], axis=0), rigid, stroke)
     if kind == "annular":
-        lip = ((-np.inf, hook.length), (np.inf, np.inf))
-        sec = annular_section(c)
-        points, cells = _gmsh_mesh([(sec, 0.0, 0.0)], size=mesh_size, fine=fine, fine_box=lip, turn=c["sector"])
-        mesh = _finish(points, cells, 0.0)
-        sliding = annular_sliding(mesh.points, c["sector"])
-        return Preset(TetMesh(mesh.points, mesh.cells, mesh.base_nodes, sliding), rigid, stroke)
+        pieces = [(annular_section(c), 0.0, 0.0)]  # turned, not extruded: no y extent
+        points, cells = _gmsh_mesh(pieces, size=mesh_size, fine=fine, fine_box=above_root, turn=c["sector"])
+        return Preset(_finish(points, cells, 0.0, sliding=annular_sliding(points, c["sector"])), rigid, stroke)
     raise ValueError(f"connector.type = {kind!r}: must be one of {', '.join(PRESETS)}")

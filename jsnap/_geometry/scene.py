@@ -288,7 +288,6 @@ CONNECTORS: dict[str, dict[str, Key]] = {
     ),
     "annular": _ordered(
         {
-            **_hook_keys("tube", "radial"),
             "length": _pos("mm", 4.0, "L, from the tube's fixed end (z = 0) up to the lip's retention face"),
             "thickness": _pos("mm", 1.0, "h, the tube's wall thickness (radial)"),
             "undercut": _pos("mm", 0.12, "y_u, how far the lip reaches into the bore (radial)"),
