@@ -98,7 +98,10 @@ def test_interface_shapes_condensed_by_segment_equal_the_full_model(scene, asm):
     cnodes, Jn = R._contact_interp((free[0::3] // 3)[sample[0]], sample[1])
     cases = R._normal_loads(Jn, normals.reshape(Jn.shape[0], -1, 3))
     tol = 1e-2
-    gamma, psi, compliance = R.interface_shapes(asm, seg, blocks, lame(E, NU), cnodes, cases, tol)
+    factor = R._load_factor(Jn)
+    gamma, psi, compliance, gain = R.interface_shapes(
+        asm, seg, blocks, lame(E, NU), cnodes, cases, tol, factor=factor
+    )
 
     # Dense reference on the full model's free dofs.
     pos = -np.ones(asm.n_dof, dtype=np.int64)
@@ -109,6 +112,9 @@ def test_interface_shapes_condensed_by_segment_equal_the_full_model(scene, asm):
     C = Kinv[np.ix_(c, c)]
     ref = np.einsum("aq,ab,bq->q", cases, C, cases)
     assert np.abs(compliance / ref - 1).max() < 1e-8
+    # The whole part's largest static gain, the contact segment's truncation reference.
+    B = np.kron(factor, np.eye(3))
+    assert gain == pytest.approx(np.linalg.eigvalsh(B.T @ C @ B)[-1], rel=1e-8)
     F = Kinv[np.ix_(g, g)]
     S_G = np.linalg.inv(0.5 * (F + F.T))
     traces = Kinv[np.ix_(g, c)] @ cases

@@ -92,6 +92,8 @@ GRAMIAN_DAMPING = 0.05
 # How the reduced segments are joined; part of the cache key (files made with springs between
 # the segments' copies hold other arrays).
 _JOINT = "shared interface coordinates"
+# What the contact segment's Hankel singular values are measured against (part of the cache key).
+_TRUNCATION = "the whole part's static gain"
 # The settings that shrink the reduction's arrays, named when one would not fit in memory.
 _MESH_HINT = "a larger solver.mesh_size"
 
@@ -325,14 +327,23 @@ def _psd_factor(A: np.ndarray) -> np.ndarray:
     return Q[:, keep] * np.sqrt(lam[keep])
 
 
-def balance(K: np.ndarray, B: np.ndarray, tol: float, zeta: float = GRAMIAN_DAMPING):
+def _hankel_reference(gain: float, zeta: float = GRAMIAN_DAMPING) -> float:
+    """The position Hankel singular value of a lone mode whose static gain is ``gain``:
+    ``gain sqrt(1 + 4 zeta^2) / (4 zeta)`` (:func:`position_gramians` for one mode)."""
+    return gain * np.sqrt(1.0 + 4.0 * zeta**2) / (4.0 * zeta)
+
+
+def balance(K: np.ndarray, B: np.ndarray, tol: float, zeta: float = GRAMIAN_DAMPING, ref: float | None = None):
     """Second-order position-balanced truncation of ``q'' + D q' + K q = B u``, ``y = B' q``,
     in coordinates where the mass is the identity (``D`` the modal damping ``zeta``).
 
     Args:
         K: (s, s) symmetric positive definite stiffness, 1/s^2.
         B: (s, m) inputs.
-        tol: keep the states whose Hankel singular value exceeds ``tol`` times the largest.
+        tol: keep the states whose Hankel singular value exceeds ``tol`` times the reference.
+        ref: the reference Hankel singular value, or None for the largest of this system. The
+            contact segment's interior is measured against the whole part's: its own largest
+            depends on where the segment's interface falls in the mesh.
 
     Returns:
         ``(Y, hsv)``: Y (s, r) the leading right balancing vectors (the basis to project on),
@@ -345,7 +356,7 @@ def balance(K: np.ndarray, B: np.ndarray, tol: float, zeta: float = GRAMIAN_DAMP
     P, Q = position_gramians(np.sqrt(w2), b, zeta)
     R, L = _psd_factor(P), _psd_factor(Q)
     _U, hsv, Wt = np.linalg.svd(L.T @ R, full_matrices=False)
-    r = int(np.sum(hsv > tol * hsv[0]))
+    r = int(np.sum(hsv > tol * max(hsv[0], ref or 0.0)))
     T = R @ (Wt[:r].T / np.sqrt(hsv[:r]))
     return Phi @ T, hsv
 
@@ -482,7 +493,9 @@ def _normal_loads(Jn: np.ndarray, normals: np.ndarray) -> np.ndarray:
     return L[:, distinct.ravel()]
 
 
-def interface_shapes(asm: Assembly, seg: Segmentation, blocks, lame0, cnodes, cases, tol: float, say=None):
+def interface_shapes(
+    asm: Assembly, seg: Segmentation, blocks, lame0, cnodes, cases, tol: float, factor=None, say=None
+):
     """Shapes of the interface nodes, shared by every segment's copy of them, and the full
     model's static compliance of each contact load case.
 
@@ -504,11 +517,14 @@ def interface_shapes(asm: Assembly, seg: Segmentation, blocks, lame0, cnodes, ca
         lame0: nominal (lambda, mu), MPa.
         cnodes: (c,) global ids of the contact nodes (all in the contact segment's interior).
         cases: (3c, Q) contact load cases on their dofs (:func:`_normal_loads`), N.
+        factor: (c, q) the contact forces' load covariance factor (:func:`_load_factor`), or None.
         say: progress printer, or None.
 
     Returns:
-        ``(gamma, Psi, compliance)``: interface node ids (k,), an orthonormal (3k, q) basis of
-        shapes, and the full model's static compliance (Q,) of each case, mm/N.
+        ``(gamma, Psi, compliance, gain)``: interface node ids (k,), an orthonormal (3k, q) basis
+        of shapes, the full model's static compliance (Q,) of each case, mm/N, and the full
+        model's largest static gain from the loads ``kron(factor, I_3)`` to their own dofs (0
+        without a factor): the reference the contact segment's interior is truncated against.
     """
     say = say or (lambda *a, **k: None)
     gamma = np.unique(np.concatenate([seg.nodes[i][seg.interface_nodes(i)] for i in range(seg.n_segments)]))
@@ -545,12 +561,16 @@ def interface_shapes(asm: Assembly, seg: Segmentation, blocks, lame0, cnodes, ca
     traces_unit = -sla.cho_solve(sla.cho_factor(S_G), Y.T)  # u_G for unit loads at the contact dofs
     C = sla.cho_solve(cho_c, np.eye(c3)) - Y @ traces_unit  # static compliance of the contact dofs
     compliance = np.sum(cases * (0.5 * (C + C.T) @ cases), axis=0)
+    gain = 0.0
+    if factor is not None:
+        B = _kron3(factor)
+        gain = float(np.linalg.eigvalsh(B.T @ (0.5 * (C + C.T)) @ B)[-1])
     traces = traces_unit @ cases
     rigid, _ = np.linalg.qr(_rigid_shapes(asm.nodes[gamma]))
     # S_G traces = -S_cG' S_cc^-1 cases: the greedy's S X without a (3k)^2 x Q product.
     extra = _greedy_energy(traces, S_G, rigid, compliance, tol, SX=-Y.T @ cases)
     psi, _ = np.linalg.qr(np.concatenate([rigid, extra], axis=1))
-    return gamma, psi, compliance
+    return gamma, psi, compliance, gain
 
 
 @dataclass(frozen=True, eq=False)
@@ -616,7 +636,7 @@ def segment_basis(
     lu = _factor(K_II)
     C_I = -lu.solve(np.asarray(K_IG @ psi)) if psi.shape[1] else np.zeros((inner.size, 0))
     if contact is not None:
-        rows, factor, cases, compliance = contact
+        rows, factor, cases, compliance, gain = contact
         at = inner_pos[_dofs(rows)]  # the contact dofs among the interior's
         if np.any(at < 0):
             raise RuntimeError("segment: a contact node lies on the segment interface (raise the margin)")
@@ -640,7 +660,7 @@ def segment_basis(
     Kh = 0.5 * (Kh + Kh.T)
     n_static = 0
     if B.shape[1] and np.abs(B).max() > 0:
-        Y, hsv = balance(Kh, U.T @ B, tol)
+        Y, hsv = balance(Kh, U.T @ B, tol, ref=None if contact is None else _hankel_reference(gain))
         n_bal = Y.shape[1]
         hsv = hsv / hsv[0]
         if contact is not None:  # static correction: compliance lost below tol x the full model's
@@ -853,7 +873,10 @@ def reduce_bases(
     # Half the tolerance for the interface, half for the interiors: the static compliance lost by
     # the two adds up.
     t0 = time.perf_counter()
-    gamma, psi, compliance = interface_shapes(asm, seg, blocks, (lam0, mu0), cnodes, cases, tol / 2, say=say)
+    factor = _load_factor(Jn)
+    gamma, psi, compliance, gain = interface_shapes(
+        asm, seg, blocks, (lam0, mu0), cnodes, cases, tol / 2, factor=factor, say=say
+    )
     say(f"jsnap:   {psi.shape[1]} interface shapes on {len(gamma)} nodes in {time.perf_counter() - t0:.1f} s")
     psi = psi.reshape(len(gamma), 3, -1)
     bases = []
@@ -864,7 +887,7 @@ def reduce_bases(
         psi_i = psi[np.searchsorted(gamma, seg.nodes[i][gl])].reshape(3 * len(gl), -1)
         contact = None
         if i == 0:
-            contact = (np.searchsorted(seg.nodes[0], cnodes), _load_factor(Jn), cases, compliance)
+            contact = (np.searchsorted(seg.nodes[0], cnodes), factor, cases, compliance, gain)
         t0 = time.perf_counter()
         bases.append(segment_basis(blocks[i], lam0, mu0, rho, gl, psi_i, contact, tol, n_modes))
         b = bases[-1]
@@ -891,7 +914,7 @@ def cache_key(asm: Assembly, seed_faces, sample, stencil, normals, settings: dic
     faces, the contact points' and stencils' nodes and weights, the points' normals and the
     settings (material it was balanced at, tolerance, subspace modes, margin, segments)."""
     h = KeyHash("reduced").settings(
-        dict(settings, element=asm.element, gramian_damping=GRAMIAN_DAMPING, joint=_JOINT)
+        dict(settings, element=asm.element, gramian_damping=GRAMIAN_DAMPING, joint=_JOINT, truncation=_TRUNCATION)
     )
     h.arrays(asm.mesh.points, asm.mesh.cells, asm.fixed, np.sort(np.sort(seed_faces, axis=1), axis=0))
     if asm.sliding.nnz:
