@@ -11,13 +11,13 @@ with an empty cache, so that its peak resident memory (``ru_maxrss``) is its own
 read when the build returns, and the whole run's (build, JAX compilation and rollouts). The step rate is that of
 ``jsnap.rollout`` (a ``lax.scan``) of the default motion, compile excluded: the median of
 repeated compiled rollouts (``REPEATS``, over ``SPREAD_S`` seconds at least), in the reduced
-model's default dtype (float32) and in float64. Where the float32 rollout is flagged (on the
-finer meshes the reduced model's float32 contact solve fails and the state goes non-finite),
-the float64 rate is the one quoted. The design-guide hook's peak insertion force is compared
+model's default dtype (float32) and in float64. Where the float32 rollout is flagged, the
+float64 rate is the one quoted. The design-guide hook's peak insertion force is compared
 with the design-guide formula (``jsnap._apps.simulate.design_guide_force``); its full model is
 not built (about 154 GiB of dense matrices: the build refuses it). Each rollout's flags are
 recorded (``status``): the design-guide hook has 10 candidate lines across its 9.5 mm width
-(the default hook 5), and with the default 64 contact slots some steps drop points.
+(the default hook 5), and with the default 64 contact slots a few steps after its peak drop
+points (flagged, with the advice to raise ``contact.capacity``).
 
 Targets: a ~100k-dof part reduced in at most 5 minutes and 8 GB, stepping at 1 kHz or more.
 ``--quick`` (CI) runs one coarse mesh, a few rollouts, no timing to quote. Writes

@@ -39,7 +39,10 @@ forces along the surface normal at every candidate point (both sides' normals at
   inputs: contact forces at the candidate points on the contact segment, the inertia loads of
   the interface shapes on the others), the position Gramians of ``M q'' + D q' + K q = B u,
   y = B' q`` are computed exactly for a nominal modal damping (:data:`GRAMIAN_DAMPING`),
-  balanced, and truncated where the Hankel singular values fall below ``tol`` times the largest.
+  balanced, and truncated where the Hankel singular values fall below ``tol`` times a
+  reference: the segment's own largest, but for the contact segment the whole part's (the
+  full model's largest static gain from the contact loads, :func:`_hankel_reference`), since
+  its own largest depends on where the segment's interface falls in the mesh.
 * *Static correction* (contact segment): the static responses to the load cases that the
   truncation lost are put back, greedily, until every case keeps its static compliance to
   ``tol/2`` of the full model's. Quasi-static insertion forces are set by that compliance.
