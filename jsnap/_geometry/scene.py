@@ -494,7 +494,10 @@ SCHEMA: dict[str, dict[str, Key]] = {
             1.0,
             True,
             True,
-            doc="reduced: keep Hankel singular values above this fraction of the largest",
+            doc=(
+                "reduced: keep Hankel singular values above this fraction of the whole part's, and every "
+                "contact load's static compliance to within it"
+            ),
         ),
         "subspace_modes": Key(
             int, 30, "", 1, internal=True, doc="reduced: lowest modes per segment balanced over"
