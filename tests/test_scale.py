@@ -99,9 +99,7 @@ def test_interface_shapes_condensed_by_segment_equal_the_full_model(scene, asm):
     cases = R._normal_loads(Jn, normals.reshape(Jn.shape[0], -1, 3))
     tol = 1e-2
     factor = R._load_factor(Jn)
-    gamma, psi, compliance, gain = R.interface_shapes(
-        asm, seg, blocks, lame(E, NU), cnodes, cases, tol, factor=factor
-    )
+    gamma, psi, compliance, gain = R.interface_shapes(asm, seg, blocks, lame(E, NU), cnodes, cases, factor, tol)
 
     # Dense reference on the full model's free dofs.
     pos = -np.ones(asm.n_dof, dtype=np.int64)

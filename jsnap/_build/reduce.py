@@ -497,7 +497,7 @@ def _normal_loads(Jn: np.ndarray, normals: np.ndarray) -> np.ndarray:
 
 
 def interface_shapes(
-    asm: Assembly, seg: Segmentation, blocks, lame0, cnodes, cases, tol: float, factor=None, say=None
+    asm: Assembly, seg: Segmentation, blocks, lame0, cnodes, cases, factor, tol: float, say=None
 ):
     """Shapes of the interface nodes, shared by every segment's copy of them, and the full
     model's static compliance of each contact load case.
@@ -520,14 +520,14 @@ def interface_shapes(
         lame0: nominal (lambda, mu), MPa.
         cnodes: (c,) global ids of the contact nodes (all in the contact segment's interior).
         cases: (3c, Q) contact load cases on their dofs (:func:`_normal_loads`), N.
-        factor: (c, q) the contact forces' load covariance factor (:func:`_load_factor`), or None.
+        factor: (c, q) the contact forces' load covariance factor (:func:`_load_factor`).
         say: progress printer, or None.
 
     Returns:
         ``(gamma, Psi, compliance, gain)``: interface node ids (k,), an orthonormal (3k, q) basis
         of shapes, the full model's static compliance (Q,) of each case, mm/N, and the full
-        model's largest static gain from the loads ``kron(factor, I_3)`` to their own dofs (0
-        without a factor): the reference the contact segment's interior is truncated against.
+        model's largest static gain from the loads ``kron(factor, I_3)`` to their own dofs: the
+        reference the contact segment's interior is truncated against.
     """
     say = say or (lambda *a, **k: None)
     gamma = np.unique(np.concatenate([seg.nodes[i][seg.interface_nodes(i)] for i in range(seg.n_segments)]))
@@ -563,11 +563,11 @@ def interface_shapes(
     S_G = 0.5 * (S_G + S_G.T)
     traces_unit = -sla.cho_solve(sla.cho_factor(S_G), Y.T)  # u_G for unit loads at the contact dofs
     C = sla.cho_solve(cho_c, np.eye(c3)) - Y @ traces_unit  # static compliance of the contact dofs
-    compliance = np.sum(cases * (0.5 * (C + C.T) @ cases), axis=0)
-    gain = 0.0
-    if factor is not None:
-        B = _kron3(factor)
-        gain = float(np.linalg.eigvalsh(B.T @ (0.5 * (C + C.T)) @ B)[-1])
+    C = 0.5 * (C + C.T)
+    compliance = np.sum(cases * (C @ cases), axis=0)
+    B = _kron3(factor)
+    G = B.T @ C @ B
+    gain = float(sla.eigh(G, eigvals_only=True, subset_by_index=(G.shape[0] - 1, G.shape[0] - 1))[0])
     traces = traces_unit @ cases
     rigid, _ = np.linalg.qr(_rigid_shapes(asm.nodes[gamma]))
     # S_G traces = -S_cG' S_cc^-1 cases: the greedy's S X without a (3k)^2 x Q product.
@@ -878,7 +878,7 @@ def reduce_bases(
     t0 = time.perf_counter()
     factor = _load_factor(Jn)
     gamma, psi, compliance, gain = interface_shapes(
-        asm, seg, blocks, (lam0, mu0), cnodes, cases, tol / 2, factor=factor, say=say
+        asm, seg, blocks, (lam0, mu0), cnodes, cases, factor, tol / 2, say=say
     )
     say(f"jsnap:   {psi.shape[1]} interface shapes on {len(gamma)} nodes in {time.perf_counter() - t0:.1f} s")
     psi = psi.reshape(len(gamma), 3, -1)
