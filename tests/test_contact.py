@@ -654,35 +654,51 @@ def test_shape_errors_name_the_argument():
 @pytest.mark.parametrize("n_active", [5, 50, 100])
 def test_solve_on_leading_slots_is_the_whole_buffers(n_active, x64):
     """A step solves its cone problem on the smallest leading part of the contact buffer that
-    holds every active slot (a quarter, half or all of 128 slots): inactive slots enter only as
-    zero rows and columns of W, so the forces are those of the solve on the whole buffer."""
+    holds every active slot (a quarter, half or all of 128 slots), forming the operator and the
+    velocity change for those slots only: inactive slots enter only as zero rows and columns of
+    W, so the forces and the velocity change are those of the solve on the whole buffer."""
     from types import SimpleNamespace
 
     from jsnap._core.contact import APGD
     from jsnap._core.step import ContactProblem, _buckets, _solve
 
-    C = 128
+    C, n = 128, 40
     assert _buckets(C) == (32, 64, 128) and _buckets(64) == (16, 64)
     W, q, mu, _ = random_problem(seed=n_active, C=C, n_kind="over")
+    A = np.random.default_rng(n_active).standard_normal((C, 3, n))  # what contact_velocity applies
+
+    class Part:
+        """A part whose contact operator for the slots ``idx`` is W's rows and columns there."""
+
+        factored = False
+
+        def contact_operator(self, op, idx):
+            return jnp.asarray(A)[idx], jnp.asarray(W.reshape(C, 3, C, 3))[idx][:, :, idx]
+
+        def contact_velocity(self, op, A_k, force):
+            return jnp.einsum("cdn,cd->n", A_k, force)
+
     active = np.arange(C) < n_active  # the buffer fills from the front (top_k)
     prob = ContactProblem(
-        W=jnp.asarray(W.reshape(C, 3, C, 3)),
         shift=jnp.asarray(0.0),
         q=jnp.asarray(q),
         mu=jnp.asarray(mu),
         active=jnp.asarray(active),
         idx=jnp.arange(C),
-        A=jnp.zeros((C, 3, 1)),
         R=jnp.broadcast_to(jnp.eye(3), (C, 3, 3)),
         points=jnp.zeros((C, 3)),
+        s_p=jnp.asarray(0.0),
         gamma0=jnp.zeros((C, 3)),
         overflow=jnp.asarray(0),
     )
-    model = SimpleNamespace(contact=SimpleNamespace(solver=APGD(max_iters=20000, tol=1e-12)))
-    part, Gamma = _solve(model, prob)
-    whole, Gamma_whole = _solve(model, prob, whole=True)
+    solver = APGD(max_iters=20000, tol=1e-12)
+    model = SimpleNamespace(contact=SimpleNamespace(solver=solver), part=Part())
+    part, Gamma, dv = _solve(model, None, prob)
+    whole = solver.solve(jnp.asarray(W), jnp.asarray(q), jnp.asarray(mu), jnp.asarray(active))
     assert bool(part.converged) and bool(whole.converged)
-    scale = float(jnp.abs(Gamma_whole).max())
+    scale = float(jnp.abs(whole.gamma).max())
     assert scale > 0
-    np.testing.assert_allclose(np.asarray(Gamma), np.asarray(Gamma_whole), atol=1e-7 * scale)
+    np.testing.assert_allclose(np.asarray(Gamma), np.asarray(whole.gamma), atol=1e-7 * scale)
     assert not np.any(np.asarray(Gamma)[~active])
+    dv_whole = np.einsum("cdn,cd->n", A, np.asarray(whole.gamma))
+    np.testing.assert_allclose(np.asarray(dv), dv_whole, atol=1e-7 * np.abs(dv_whole).max())

@@ -202,11 +202,10 @@ def _local_operator(part, op, idx, R, s_p):
     Where the part gives its block as thin factors ``W = A J'`` (segmented and reduced parts)
     and they are thin enough (r ≤ 4 x 3C), the factors are turned into the frames, with the
     rigid part's term ``s_p Rᵀ R`` as three more columns:
-    ``W_loc = [R'A, s_p R'] [R'J, R']'``, multiplied out only for the leading slots the solve
-    takes (:meth:`ContactProblem.delassus`). Turning the (C, 3, C, 3) block instead is heavy
-    enough for XLA:CPU to split it across the cores, which cost ~30 µs of a ~100 µs reduced
-    step; for a part whose r is its nodal dofs (segmented, coarse meshes aside) the block's turn
-    is the cheaper one.
+    ``W_loc = [R'A, s_p R'] [R'J, R']'``, multiplied out by :func:`_delassus`. Turning the
+    (C, 3, C, 3) block instead is heavy enough for XLA:CPU to split it across the cores, which
+    cost ~30 µs of a ~100 µs reduced step; for a part whose r is its nodal dofs (segmented,
+    coarse meshes aside) the block's turn is the cheaper one.
     """
     if part.factored and part.n_dof <= 4 * 3 * idx.shape[0]:
         A, J = part.contact_factors(op, idx)
@@ -222,38 +221,36 @@ def _local_operator(part, op, idx, R, s_p):
 class ContactProblem(eqx.Module):
     """One step's cone problem and what maps it back to the deformable part.
 
-    W: the Delassus block in contact frames, mm/(N s), as ``_local_operator`` gives it; shift:
-    the contact compliance over the step, added to its diagonal; q: (3C,) free relative
-    velocity plus gap stabilisation, mm/s; mu: (C,); active: (C,) bool; idx: (C,) candidate
-    index of each slot; A: ``J S^-1`` or what the part's ``contact_velocity`` applies in its
-    stead; R: (C, 3, 3) frames [n, t1, t2]; points: (C, 3) slot positions, mm; gamma0: (C, 3)
+    shift: the contact compliance over the step, added to the Delassus matrix's diagonal; q:
+    (3C,) free relative velocity plus gap stabilisation, mm/s; mu: (C,); active: (C,) bool;
+    idx: (C,) candidate index of each slot; R: (C, 3, 3) frames [n, t1, t2]; points: (C, 3)
+    slot positions, mm; s_p: the rigid part's mobility over the step, mm/(N s); gamma0: (C, 3)
     warm start, N; overflow: candidates that did not fit.
+
+    The Delassus operator is not part of it: :func:`_solve` forms it (``_local_operator``) for
+    only the leading slots it solves on.
     """
 
-    W: jax.Array | tuple[jax.Array, jax.Array]
     shift: jax.Array
     q: jax.Array
     mu: jax.Array
     active: jax.Array
     idx: jax.Array
-    A: jax.Array
     R: jax.Array
     points: jax.Array
+    s_p: jax.Array
     gamma0: jax.Array
     overflow: jax.Array
 
-    def delassus(self, k: int) -> jax.Array:
-        """(3k, 3k) Delassus matrix of the leading ``k`` slots, symmetrised, with the compliance
-        on its diagonal. From factors, only the leading rows are multiplied: the solve takes the
-        leading slots that hold the active ones (``_solve``), most often a quarter or half of
-        the buffer, and the whole product was the step's largest kernel."""
-        if isinstance(self.W, tuple):
-            left, right = self.W
-            W = jnp.einsum("cir,ejr->ciej", left[:k], right[:k])
-        else:
-            W = self.W[:k, :, :k]
-        W = W.reshape(3 * k, 3 * k)
-        return 0.5 * (W + W.T) + self.shift * jnp.eye(3 * k, dtype=W.dtype)
+
+def _delassus(W, shift, k: int) -> jax.Array:
+    """(3k, 3k) Delassus matrix of ``k`` slots from ``_local_operator``'s ``W`` for them,
+    symmetrised, with the compliance ``shift`` on its diagonal."""
+    if isinstance(W, tuple):
+        left, right = W
+        W = left.reshape(3 * k, -1) @ right.reshape(3 * k, -1).T
+    W = W.reshape(3 * k, 3 * k)
+    return 0.5 * (W + W.T) + shift * jnp.eye(3 * k, dtype=W.dtype)
 
 
 def _contact_problem(
@@ -281,7 +278,6 @@ def _contact_problem(
     active = keep[idx]
     stencil = model.samples.stencil[idx] + part.stencil_disp(state.x, idx)
     R = frames(contact_normal(stencil, n_plug, model.samples.corner[idx]))
-    A, W_loc = _local_operator(part, op, idx, R, s_p)
     shift = jnp.asarray(settings.compliance / T, dtype)
     u_free = part.point_velocity(vbar_free, idx) - vp_free - frame.spin(y[idx])
     # A gap closes within the step; a penetration (the linearised gap drifts inward where a
@@ -291,7 +287,8 @@ def _contact_problem(
     q = jnp.einsum("cdi,cd->ci", R, u_free).at[:, 0].add(gap / T).reshape(-1)
     mu = jnp.broadcast_to(prepared.params.friction, (C,)).astype(dtype)
     overflow = jnp.maximum(n_cand - C, 0)
-    return ContactProblem(W_loc, shift, q, mu, active, idx, A, R, y[idx], gamma[idx], overflow)
+    s_p = jnp.asarray(s_p, dtype)
+    return ContactProblem(shift, q, mu, active, idx, R, y[idx], s_p, gamma[idx], overflow)
 
 
 def _buckets(capacity: int) -> tuple[int, ...]:
@@ -306,14 +303,16 @@ def _buckets(capacity: int) -> tuple[int, ...]:
     return tuple(sorted({small, half, capacity}))
 
 
-def _solve(model: Model, prob: ContactProblem, whole=False):
-    """Solve the step's cone problem; ``(solution, Gamma)`` with Gamma (C, 3) in world axes.
+def _solve(model: Model, op, prob: ContactProblem):
+    """Solve the step's cone problem; ``(solution, Gamma, dv)`` with Gamma (C, 3) in world axes
+    and dv the part's velocity change from it (``contact_velocity``).
 
     Only the active slots carry force, and the buffer fills its slots from the front (top_k),
     so the solver runs on the smallest of ``_buckets(C)`` leading slots that holds every active
-    one (a ``lax.switch``): inactive slots enter the problem only as zero rows and columns of
-    W, so the solution is the same, while each iteration's matvec shrinks with the square of
-    the size. ``whole=True`` takes the whole buffer, as the predict-correct second solve does.
+    one (a ``lax.switch``). The branch forms the operator (``_local_operator``), the Delassus
+    matrix and the velocity change for its slots only: every per-slot cost shrinks with the
+    size (the Delassus matrix and each iteration's matvec with its square), and the solution is
+    the same, since the inactive slots would enter only as zero rows and columns.
 
     Under ``vmap`` the switch runs every branch (a select): the branches not taken get no
     active slot, so their solves stop at their first check instead of running to the
@@ -321,28 +320,27 @@ def _solve(model: Model, prob: ContactProblem, whole=False):
     """
     solver = model.contact.solver
     C = prob.mu.shape[0]
-    sizes = (C,) if whole else _buckets(C)
+    sizes = _buckets(C)
     # Slots up to the last active one (a prefix however the buffer was filled).
     n = jnp.max(jnp.where(prob.active, jnp.arange(1, C + 1), 0))
     branch = jnp.sum(n > jnp.asarray(sizes[:-1]))
 
     def leading(i, k):
         def f(_):
+            A, W = _local_operator(model.part, op, prob.idx[:k], prob.R[:k], prob.s_p)
+            active = prob.active[:k] & (branch == i)  # the branch taken: prob.active[:k]
             sol = solver.solve(
-                prob.delassus(k),
-                prob.q[: 3 * k],
-                prob.mu[:k],
-                prob.active[:k] & (branch == i),  # the branch taken: prob.active[:k]
-                gamma0=prob.gamma0[:k],
+                _delassus(W, prob.shift, k), prob.q[: 3 * k], prob.mu[:k], active, gamma0=prob.gamma0[:k]
             )
-            return sol._replace(gamma=jnp.zeros((C, 3), sol.gamma.dtype).at[:k].set(sol.gamma))
+            Gamma = jnp.einsum("cij,cj->ci", prob.R[:k], sol.gamma) * active[:, None]  # on the part, world
+            dv = model.part.contact_velocity(op, A, Gamma)
+            pad = jnp.zeros((C, 3), sol.gamma.dtype)
+            return sol._replace(gamma=pad.at[:k].set(sol.gamma)), pad.at[:k].set(Gamma), dv
 
         return f
 
     branches = [leading(i, k) for i, k in enumerate(sizes)]
-    sol = jax.lax.switch(branch, branches, None) if len(sizes) > 1 else branches[0](None)
-    Gamma = jnp.einsum("cij,cj->ci", prob.R, sol.gamma) * prob.active[:, None]  # on the part, world
-    return sol, Gamma
+    return jax.lax.switch(branch, branches, None) if len(sizes) > 1 else branches[0](None)
 
 
 class _Pass(NamedTuple):
@@ -395,14 +393,13 @@ def _step(model: Model, prepared: Prepared, state: State, control):
 
     def attempt(score, warm, second: bool):
         prob = _contact_problem(model, prepared, state, frame, vbar_free, vp_free, s_p, y, score, warm)
-        sol, Gamma = _solve(model, prob, whole=second)
+        sol, Gamma, dv = _solve(model, op, prob)
         # 4. Predict-correct: where the solved motion would carry points that were not in the
         # buffer into the rigid part (a stiff, light part released by it springs back through a
         # large gap within one step), add them and solve again, warm-started. The path within
         # the step is straight, but a released stiff part can move farther than the rigid part
         # is thick in one step (PMI's undamped high modes flip sign), so the path is checked at
         # several points, not only at its end.
-        dv = part.contact_velocity(op, prob.A, Gamma)
         dy = T * part.sample_disp(vbar_free + dv)
         dp = T * (vp_free - s_p * jnp.sum(Gamma, axis=0))
         spin = T * frame.spin(y)  # the rigid part's turn over the step, to first order
