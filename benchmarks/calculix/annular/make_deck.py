@@ -231,6 +231,7 @@ def build(
     level: int,
     mu: float = 0.0,
     penalty: float = PENALTY,
+    stick: float = STICK_RATIO,
     full: int = 0,
     dtravel: float = 0.01,
     stroke: float = STROKE,
@@ -308,7 +309,7 @@ def build(
         f.write("*SURFACE INTERACTION, NAME=SI\n*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR\n")
         f.write(f"{penalty:g}, {SIGMA_INF:g}\n")
         if mu > 0:
-            f.write(f"*FRICTION\n{mu:g}, {STICK_RATIO * penalty:g}\n")
+            f.write(f"*FRICTION\n{mu:g}, {stick * penalty:g}\n")
         f.write("*CONTACT PAIR, INTERACTION=SI, TYPE=NODE TO SURFACE\nS_LIP, M_BEAD\n")
         # step time t in [0, 1]; travel = stroke * amplitude(t), fixed increments dt
         dt = dtravel / (stroke - approach + dtravel) if approach > 0 else dtravel / stroke
@@ -331,6 +332,7 @@ def build(
         fillet_seg=lev["fillet_seg"],
         mu=mu,
         penalty=penalty,
+        stick=stick,
         full=full,
         theta_s=None if full else theta_s,
         scale=scale,
@@ -354,6 +356,7 @@ def main(argv=None):
     ap.add_argument("--mesh", type=int, default=3, choices=sorted(LEVELS), help="refinement level")
     ap.add_argument("--mu", type=float, default=0.0, help="Coulomb friction coefficient")
     ap.add_argument("--penalty", type=float, default=PENALTY, help="contact penalty slope, N/mm^3")
+    ap.add_argument("--stick", type=float, default=STICK_RATIO, help="stick slope over the penalty slope")
     ap.add_argument("--full", type=int, default=0, help="full 360-degree model with this many hexahedra around")
     ap.add_argument("--dtravel", type=float, default=0.01, help="bead travel per increment, mm")
     ap.add_argument("--stroke", type=float, default=STROKE, help="total bead travel, mm")
@@ -370,6 +373,7 @@ def main(argv=None):
         level=a.mesh,
         mu=a.mu,
         penalty=a.penalty,
+        stick=a.stick,
         full=a.full,
         dtravel=a.dtravel,
         stroke=a.stroke,

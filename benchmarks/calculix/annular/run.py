@@ -40,6 +40,11 @@ CASES = {
     "mu0_m2": ("annular_mu0_lin_m2_curve.csv", dict(level=2, mu=0.0)),
     "mu0_m4": ("annular_mu0_lin_m4_curve.csv", dict(level=4, mu=0.0)),
     "mu03_m2": ("annular_mu03_lin_m2_curve.csv", dict(level=2, mu=0.3)),
+    # the stick slope (elastic slip before sliding) at 1 % (the runs above), 10 % and 0.1 % of
+    # the penalty, on the level-1 mesh: how much of the mu = 0.3 force is CalculiX's elastic slip
+    "mu03_m1": ("annular_mu03_lin_m1_curve.csv", dict(level=1, mu=0.3)),
+    "mu03_m1_stick10": ("annular_mu03_lin_m1_stick10_curve.csv", dict(level=1, mu=0.3, stick=0.1)),
+    "mu03_m1_stick01": ("annular_mu03_lin_m1_stick01_curve.csv", dict(level=1, mu=0.3, stick=0.001)),
     "mu0_k10": ("annular_mu0_lin_penalty10_curve.csv", dict(level=3, mu=0.0, penalty=10 * md.PENALTY)),
     # a 10x softer penalty: about 1-2 % low, but the static solver gets through the snap
     "mu0_k01": ("annular_mu0_lin_penalty0.1_curve.csv", dict(level=3, mu=0.0, penalty=0.1 * md.PENALTY)),
@@ -222,6 +227,7 @@ def summary() -> None:
                 lip_element_mm=md.LEVELS[opts["level"]]["fine"],
                 mu=opts.get("mu", 0.0),
                 penalty=opts.get("penalty", md.PENALTY),
+                stick_ratio=opts.get("stick", md.STICK_RATIO) if opts.get("mu", 0.0) else None,
                 model="full 360" if opts.get("full") else f"{md.THETA_S:g}-deg sector",
                 peak_force_N=round(float(f[k]), 3),
                 travel_at_peak_mm=round(float(x[k]), 4),
