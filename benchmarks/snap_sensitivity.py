@@ -48,13 +48,18 @@ TIGHT = {"contact.tolerance": 1e-8}
 MESH = {"box_lid": {"solver.mesh_size": 1.2}}
 
 
+def snap_step(ref) -> int:
+    """The step after ``ref``'s largest one-step drop (the snap)."""
+    return int(np.argmax(-np.diff(ref))) + 1
+
+
 def split(F, ref) -> dict:
     """RMS differences of ``F`` from ``ref`` in % of ``ref``'s peak: whole, rise, and the parts
     before and after ``ref``'s largest one-step drop; and each curve's RMS after it."""
     peak = ref.max()
     e2 = (F - ref) ** 2
     n = len(ref)
-    snap = int(np.argmax(-np.diff(ref))) + 1
+    snap = snap_step(ref)
     rise = int(np.argmax(ref)) + 1
     return {
         "whole": float(np.sqrt(e2.mean()) / peak),
@@ -84,7 +89,7 @@ def run(preset: str, mu: float) -> dict:
         "full_one_step_late": np.concatenate([F[:1], F[:-1]]),
         "reduced_float32": np.asarray(red.insertion_force, np.float64),
     }
-    snap = int(np.argmax(-np.diff(F))) + 1
+    snap = snap_step(F)
     return {
         "full_dof": int(full_model.full_dof),
         "reduced_orders": [int(k) for k in red_model.part.orders],

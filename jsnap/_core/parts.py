@@ -132,10 +132,11 @@ class AbstractPart(eqx.Module):
 
 
 def _interpolate_rows(w, nodes, rows):
-    """(C, 3, r): ``einsum("ck,ckdr->cdr", w, rows[nodes])``, the rows of ``k`` nodes per
-    point weighted, as a sum over the k nodes: XLA:CPU runs the einsum as C tiny dots, 1.4-10x
-    slower at 16-256 points."""
-    return sum(w[:, k, None, None] * rows[nodes[:, k]] for k in range(w.shape[1]))
+    """(C, ...): ``einsum("ck,ck...->c...", w, rows[nodes])``, the rows of the ``k`` nodes of
+    each point weighted, as a sum over the k nodes: XLA:CPU runs the einsum as C tiny dots,
+    1.4-10x slower at 16-256 points (and 2.5x at ~600 points of (3,) rows)."""
+    w = w.reshape(w.shape + (1,) * (rows.ndim - 1))
+    return sum(w[:, k] * rows[nodes[:, k]] for k in range(w.shape[1]))
 
 
 def _rows_transpose_times(A, force):
@@ -235,10 +236,7 @@ class _ContactNodeRows(AbstractPart):
         return jnp.einsum("cdr,r->cd", self.node_rows, x)
 
     def sample_disp(self, x):
-        # A sum over the k nodes, not einsum("pk,pkd->pd"): XLA:CPU runs that as P tiny dots,
-        # 2.5x slower at ~600 points (the step calls this twice).
-        xn, w, nodes = self._nodes(x), self.sample_weights, self.sample_nodes
-        return sum(w[:, k, None] * xn[nodes[:, k]] for k in range(w.shape[1]))
+        return _interpolate_rows(self.sample_weights, self.sample_nodes, self._nodes(x))
 
     def stencil_disp(self, x, idx):
         xn = self._nodes(x)
