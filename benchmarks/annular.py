@@ -16,6 +16,9 @@ planes); every force here is the whole ring's, the sector's times ``360 / sector
    mu = 0.3).
 2. contact.stabilisation: the frictionless full model's peak with 0.1, 0.3 (shipped) and 1 of a
    penetration removed per step, and whether the rollout stays passive.
+   The reduced model at several ``solver.hsv_tolerance`` values against the same full model
+   (why the scene reduces at 1e-3). And three snaps the scene's settings were not chosen on:
+   the full model's peak (float64) against the reduced model's (float32), and flagged steps.
 3. The radial force that holds the lip open on the bead's side against shell theory (a
    semi-infinite cylinder under a ring load at its end: w = Q / (2 beta^3 D)), and the peak
    against the design guide's annular mating force.
@@ -55,6 +58,20 @@ REFS = {
 }
 FULL_CONTACT = {"contact.solver": "apgd", "contact.iterations": 5000}
 RISE = (0.15, 0.20, 0.25)
+# solver.hsv_tolerance of the reduced models compared (the scene's is 1e-3).
+TOLERANCES = (1e-2, 3e-3, 1e-3, 3e-4)
+# Snaps the scene's settings were not chosen on (the scene's contact and reduction settings).
+OTHER_SNAPS = (
+    {"connector.radius": 5.0, "connector.thickness": 1.5, "connector.undercut": 0.2},
+    {
+        "connector.radius": 2.0,
+        "connector.thickness": 0.8,
+        "connector.undercut": 0.08,
+        "connector.lead_angle": 40.0,
+        "contact.friction": 0.5,
+    },
+    {"connector.lead_angle": 20.0, "connector.length": 6.0, "contact.friction": 0.0},
+)
 
 
 def shell_radial_force(c: dict, E: float, nu: float) -> float:
@@ -129,6 +146,18 @@ def main(argv=None) -> int:
                 "reduced_N": Fr.tolist(),
             },
         }
+        # The reduction's tolerance: how the reduced model converges to the full one.
+        acc["hsv_tolerance"] = {}
+        for tol in TOLERANCES:
+            model = jsnap.build(scene.replace({"solver.hsv_tolerance": tol}))
+            res = jsnap.rollout(model)
+            F = copies * np.asarray(res.insertion_force, np.float64)
+            acc["hsv_tolerance"][f"{tol:g}"] = {
+                "orders": [int(o) for o in model.part.orders],
+                **curve_stats(F, travel, Ff),
+                "ok": bool(res.ok),
+            }
+            print(f"mu {mu:g}, hsv_tolerance {tol:g}:", acc["hsv_tolerance"][f"{tol:g}"], flush=True)
         for row, ref in zip(acc["calculix"], REFS[mu], strict=True):
             d = np.genfromtxt(ref, delimiter=",", names=True)
             row["rise_N"] = [float(np.interp(t, d["plug_travel_mm"], d["insertion_force_N"])) for t in RISE]
@@ -139,6 +168,21 @@ def main(argv=None) -> int:
     out["design_guide_mating_force_N"] = {
         f"mu {mu:g}": copies * design_guide_force(base.replace({"contact.friction": mu})) for mu in (0.0, 0.3)
     }
+    out["other_snaps"] = []
+    for changes in OTHER_SNAPS:
+        scene = base.replace(changes)
+        full_scene = load_scene({"solver.method": "full", "solver.dtype": "float64"}, scene)
+        full = jsnap.rollout(jsnap.build(full_scene))
+        red_model = jsnap.build(scene)
+        red = jsnap.rollout(red_model)
+        row = {"changes": changes, "reduced_orders": [int(o) for o in red_model.part.orders]}
+        for name, res in (("full_float64", full), ("reduced_float32", red)):
+            row[name] = {
+                "peak_N": copies * float(np.max(np.asarray(res.insertion_force))),
+                "flagged_steps": int(np.sum(np.asarray(res.flags) != 0)),
+            }
+        out["other_snaps"].append(row)
+        print("other snap", row, flush=True)
     out["stabilisation"] = {}
     for s in (0.1, 0.3, 1.0):
         scene = load_scene(

@@ -1,6 +1,6 @@
 """The preset gallery: every connector preset jsnap ships, run as its shipped scene.
 
-    python benchmarks/gallery.py
+    python benchmarks/gallery.py [--presets annular,...]
 
 For every preset of ``jsnap._geometry.presets.PRESETS`` (the cantilever's scene is
 ``jsnap/scenes/default.toml``, every other preset ``p``'s ``jsnap/scenes/<p>.toml``), with the
@@ -20,11 +20,13 @@ scene as it is (its default method, the reduced model, rolled out in float32):
 
 Writes benchmarks/results/gallery.json, docs/img/gallery_<preset>.png for every preset and
 docs/img/gallery_materials.png (every preset's force for every material on one chart, the
-counterpart of the paper's Fig. 5).
+counterpart of the paper's Fig. 5). ``--presets`` reruns some presets and keeps the other rows
+(each row carries its date and commit); the materials chart is then kept as it was.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import platform
@@ -352,33 +354,52 @@ def plot_materials(rows: dict, curves: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def main() -> int:
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--presets", default=",".join(PRESETS), help="comma-separated; default: all")
+    presets = ap.parse_args(argv).presets.split(",")
+    unknown = sorted(set(presets) - set(PRESETS))
+    if unknown:
+        ap.error(f"--presets: unknown {', '.join(unknown)} (the presets: {', '.join(PRESETS)})")
     IMG.mkdir(parents=True, exist_ok=True)
     OUT.mkdir(exist_ok=True)
-    rows, curves = {}, {}
-    for preset in PRESETS:
+    path = OUT / "gallery.json"
+    partial = set(presets) != set(PRESETS)
+    before = json.loads(path.read_text()) if partial and path.exists() else {}
+    # A rerun of some presets keeps the other rows (each row has its own date); the materials
+    # chart needs every preset's curves, so it is redrawn only by a run of all of them.
+    rows = {p: r for p, r in before.get("presets", {}).items() if p in PRESETS and p not in presets}
+    curves = {}
+    for preset in presets:
         print(f"{preset} ...", flush=True)
         row, fig_data = run_preset(preset)
-        rows[preset] = row
+        rows[preset] = row | {"date": time.strftime("%Y-%m-%d %H:%M"), "commit": code_version()["commit"]}
         curves[preset] = fig_data["materials"]
         figure = IMG / f"gallery_{preset}.png"
         plot_preset(preset, row, fig_data, figure)
         row["figure"] = str(figure.relative_to(ROOT.parent))
         print(f"{preset}: {json.dumps({k: v for k, v in row.items() if k != 'materials'})}", flush=True)
-    plot_materials(rows, curves, IMG / "gallery_materials.png")
+    rows = {p: rows[p] for p in PRESETS if p in rows}
+    if partial:
+        figure_date = before.get("materials_figure_date", before.get("date"))
+        print(f"materials chart kept (drawn {figure_date}): it is redrawn by a run of every preset", flush=True)
+    else:
+        plot_materials(rows, curves, IMG / "gallery_materials.png")
+        figure_date = time.strftime("%Y-%m-%d %H:%M")
     out = {
         "benchmark": "gallery",
         "presets": rows,
         "materials": MATERIALS,
         "materials_source": MATERIALS_SOURCE,
         "materials_figure": str((IMG / "gallery_materials.png").relative_to(ROOT.parent)),
+        "materials_figure_date": figure_date,
         "machine": machine(),
         "cpus": os.cpu_count(),
         "load_average_after": list(os.getloadavg()),
         "date": time.strftime("%Y-%m-%d %H:%M"),
         "code": code_version(),
     }
-    (OUT / "gallery.json").write_text(json.dumps(out, indent=1) + "\n")
+    path.write_text(json.dumps(out, indent=1) + "\n")
     return 0
 
 
