@@ -4,6 +4,8 @@ the peak against the full model" target.
 
     python benchmarks/snap_sensitivity.py [--presets two_hook_clip,cable_latch,box_lid,annular]
 
+(``--presets`` with some of them reruns those and keeps the other presets' rows of the JSON.)
+
 For each connector preset, frictionless and at mu = 0.3, the reference is the full model in
 float64 with its contact solved by APGD to the scene's tolerance (up to 5000 iterations), as in
 the presets' own benchmarks (the box lid on its 1.2 mm mesh, both models, as
@@ -15,24 +17,28 @@ their squares add up to the whole's):
 - the same full model in float32 (round-off only);
 - the same full model in float64 with the contact solved to 1e-8 (the solve's stopping point);
 - the reference delayed by one step (every event 1 ms, 0.01 mm of travel, late);
-- the shipped reduced model in float32.
+- the shipped reduced model in float32, and the same reduced model in float64.
 
 The first three are the full model's own determinacy: where they already exceed 2 %, no model
-can be held to 2 % of it over the whole motion. Also the RMS of each curve after the snap in %
+can be held to 2 % of it over the whole motion. The reduced model's own float32 round-off is
+measured the same way (its float32 curve against its float64 one, ``reduced_own_float32``):
+where that exceeds its difference from the full model, the difference is of the size of the
+reduced model's own determinacy. Also the RMS of each curve after the snap in %
 of the peak (how hard the parts keep hitting each other once the hooks are free).
 
 Writes benchmarks/results/snap_sensitivity.{json,png}. Untimed (the numbers are differences
-between curves); ~20 min on two cores.
+between curves); ~35 min on two cores.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import time
 from pathlib import Path
 
 import numpy as np
-from _common import load_scene, write_result
+from _common import code_version, load_scene, write_result
 
 import jsnap
 from jsnap._geometry.scene import default_scene_path
@@ -83,11 +89,14 @@ def run(preset: str, mu: float) -> dict:
     )
     red_model = jsnap.build(scene)
     red = jsnap.rollout(red_model)
+    red64 = jsnap.rollout(red_model, dtype="float64")
+    R64 = np.asarray(red64.insertion_force, np.float64)
     curves = {
         "full_float32": np.asarray(f32.insertion_force, np.float64),
         "full_float64_tol_1e-8": np.asarray(tight.insertion_force, np.float64),
         "full_one_step_late": np.concatenate([F[:1], F[:-1]]),
         "reduced_float32": np.asarray(red.insertion_force, np.float64),
+        "reduced_float64": R64,
     }
     snap = snap_step(F)
     return {
@@ -103,9 +112,11 @@ def run(preset: str, mu: float) -> dict:
             "full_float32": bool(f32.ok),
             "tight": bool(tight.ok),
             "reduced": bool(red.ok),
+            "reduced_float64": bool(red64.ok),
         },
         "reference_rms_after_snap_of_peak": split(F, F)["rms_after_snap_of_peak"],
         "against_full_float64": {name: split(G, F) for name, G in curves.items()},
+        "reduced_own_float32": split(curves["reduced_float32"], R64),
         "curves": {"travel_mm": np.asarray(ref.travel).tolist(), "full_float64_N": F.tolist()}
         | {f"{k}_N": v.tolist() for k, v in curves.items() if k != "full_one_step_late"},
     }
@@ -118,15 +129,28 @@ def plot(out: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     rows = [(p, mu, r) for p, by_mu in out["presets"].items() for mu, r in by_mu.items()]
-    names = ["full_float32", "full_float64_tol_1e-8", "full_one_step_late", "reduced_float32"]
-    labels = ["full, float32", "full, contact tol 1e-8", "full, one step late", "reduced (shipped)"]
+    names = [
+        "full_float32",
+        "full_float64_tol_1e-8",
+        "full_one_step_late",
+        "reduced_float32",
+        "reduced_float64",
+    ]
+    labels = [
+        "full, float32",
+        "full, contact tol 1e-8",
+        "full, one step late",
+        "reduced (shipped)",
+        "reduced, float64",
+    ]
     fig, ax = plt.subplots(figsize=(11, 4.2))
     width = 0.8 / len(names)
     x = np.arange(len(rows))
     for i, (name, label) in enumerate(zip(names, labels, strict=True)):
         ax.bar(
             x + i * width,
-            [100 * r["against_full_float64"][name]["whole"] for _, _, r in rows],
+            # Rows kept from a run before a variant was added have no bar for it.
+            [100 * r["against_full_float64"].get(name, {"whole": np.nan})["whole"] for _, _, r in rows],
             width,
             label=label,
         )
@@ -145,11 +169,17 @@ def main(argv=None) -> int:
     ap.add_argument("--presets", default=",".join(PRESETS))
     presets = ap.parse_args(argv).presets.split(",")
     out = {"what": __doc__.splitlines()[0], "full_contact": FULL_CONTACT, "tight": TIGHT, "presets": {}}
+    path = OUT / "snap_sensitivity.json"
+    if set(presets) != set(PRESETS) and path.exists():
+        # A rerun of some presets keeps the others' rows; each row carries its own date and code.
+        kept = json.loads(path.read_text())["presets"]
+        out["presets"] = {p: rows for p, rows in kept.items() if p in PRESETS}
     for preset in presets:
         for mu in (0.0, 0.3):
             r = out["presets"].setdefault(preset, {})[f"mu {mu:g}"] = run(preset, mu)
+            r |= {"date": time.strftime("%Y-%m-%d %H:%M"), "code": code_version()["commit"]}
             print(preset, mu, json.dumps({k: v for k, v in r.items() if k != "curves"}), flush=True)
-    write_result(out, OUT / "snap_sensitivity.json")
+    write_result(out, path)
     plot(out, OUT / "snap_sensitivity.png")
     return 0
 
