@@ -574,6 +574,23 @@ def test_annular_reduced_model_follows_the_full_model(annular_runs):
     np.testing.assert_allclose(np.asarray(full.base_force)[:rise, 2], Ff[:rise], atol=0.01 * Ff.max())
 
 
+def test_annular_reduced_model_follows_the_full_model_with_friction():
+    """At mu = 0.3 the lip sticks and slips on the bead's edge near the peak: the shipped reduced
+    model (float32) follows the full model (float64) over the rise within 1 % RMS of the peak,
+    over the whole motion within 2 %, and peaks within 1 %. (A basis reduced at the default
+    hsv_tolerance of 1e-2 misses the rise by 3.9 %: benchmarks/annular.py.)"""
+    scene = jsnap.load_scene(ANNULAR)
+    assert scene["contact"]["friction"] == 0.3
+    full_model = jsnap.build(scene.replace({"solver.method": "full", "solver.dtype": "float64"}))
+    full = jsnap.rollout(full_model).check()
+    reduced = jsnap.rollout(jsnap.build(scene)).check()
+    Ff, Fr = np.asarray(full.insertion_force), np.asarray(reduced.insertion_force, np.float64)
+    peak, rise = Ff.max(), int(np.argmax(Ff)) + 1
+    assert abs(Fr.max() / peak - 1) < 0.01
+    assert np.sqrt(np.mean((Fr[:rise] - Ff[:rise]) ** 2)) < 0.01 * peak
+    assert np.sqrt(np.mean((Fr - Ff) ** 2)) < 0.02 * peak
+
+
 def test_annular_wall_strain_is_the_design_guides_hoop_strain(annular_runs):
     """The design guide's strain of an annular snap, y / d (the whole wall stretched by the
     diametral undercut over the diameter), against the largest principal strain jsnap reports
