@@ -217,6 +217,31 @@ def write_result(out: dict, path: Path) -> None:
     path.write_text(json.dumps(out, indent=1) + "\n")
 
 
+def presets_option(parser, known, argv) -> list[str]:
+    """The presets that ``--presets`` names (comma-separated; default: all of ``known``); an
+    unknown name is a parser error naming it."""
+    parser.add_argument("--presets", default=",".join(known), help="comma-separated; default: all")
+    presets = parser.parse_args(argv).presets.split(",")
+    unknown = sorted(set(presets) - set(known))
+    if unknown:
+        parser.error(f"--presets: unknown {', '.join(unknown)} (the presets: {', '.join(known)})")
+    return presets
+
+
+def kept_rows(path: Path, rerun, known) -> dict:
+    """On a rerun of some presets, the other presets' rows (``["presets"]``) of the previous
+    result at ``path``; each row carries its own date and commit (:func:`stamped`)."""
+    if set(rerun) == set(known) or not path.exists():
+        return {}
+    rows = json.loads(path.read_text()).get("presets", {})
+    return {p: r for p, r in rows.items() if p in known and p not in rerun}
+
+
+def stamped(row: dict) -> dict:
+    """``row`` with the date and the commit it was measured at."""
+    return row | {"date": time.strftime("%Y-%m-%d %H:%M"), "commit": code_version()["commit"]}
+
+
 def plot_speed(ax, rows: dict) -> None:
     """On ``ax``: the steps/s of each timing row (name -> :func:`timing_row`) as bars on a log
     scale, against 1 kHz, titled with the first row's load average."""

@@ -34,7 +34,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import code_version, scan_timing
+from _common import code_version, kept_rows, presets_option, scan_timing, stamped
 
 import jsnap
 from jsnap._apps.simulate import ring_copies
@@ -356,28 +356,22 @@ def plot_materials(rows: dict, curves: dict, path: Path) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--presets", default=",".join(PRESETS), help="comma-separated; default: all")
-    presets = ap.parse_args(argv).presets.split(",")
-    unknown = sorted(set(presets) - set(PRESETS))
-    if unknown:
-        ap.error(f"--presets: unknown {', '.join(unknown)} (the presets: {', '.join(PRESETS)})")
+    presets = presets_option(ap, PRESETS, argv)
     IMG.mkdir(parents=True, exist_ok=True)
     OUT.mkdir(exist_ok=True)
     path = OUT / "gallery.json"
     partial = set(presets) != set(PRESETS)
+    # The materials chart needs every preset's curves, so a partial rerun keeps it as it was.
     before = json.loads(path.read_text()) if partial and path.exists() else {}
-    # A rerun of some presets keeps the other rows (each row has its own date); the materials
-    # chart needs every preset's curves, so it is redrawn only by a run of all of them.
-    rows = {p: r for p, r in before.get("presets", {}).items() if p in PRESETS and p not in presets}
+    rows = kept_rows(path, presets, PRESETS)
     curves = {}
     for preset in presets:
         print(f"{preset} ...", flush=True)
         row, fig_data = run_preset(preset)
-        rows[preset] = row | {"date": time.strftime("%Y-%m-%d %H:%M"), "commit": code_version()["commit"]}
         curves[preset] = fig_data["materials"]
         figure = IMG / f"gallery_{preset}.png"
         plot_preset(preset, row, fig_data, figure)
-        row["figure"] = str(figure.relative_to(ROOT.parent))
+        rows[preset] = row = stamped(row | {"figure": str(figure.relative_to(ROOT.parent))})
         print(f"{preset}: {json.dumps({k: v for k, v in row.items() if k != 'materials'})}", flush=True)
     rows = {p: rows[p] for p in PRESETS if p in rows}
     if partial:

@@ -34,11 +34,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 from pathlib import Path
 
 import numpy as np
-from _common import code_version, load_scene, write_result
+from _common import kept_rows, load_scene, presets_option, stamped, write_result
 
 import jsnap
 from jsnap._geometry.scene import default_scene_path
@@ -166,18 +165,13 @@ def plot(out: dict, path: Path) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--presets", default=",".join(PRESETS))
-    presets = ap.parse_args(argv).presets.split(",")
-    out = {"what": __doc__.splitlines()[0], "full_contact": FULL_CONTACT, "tight": TIGHT, "presets": {}}
+    presets = presets_option(ap, PRESETS, argv)
     path = OUT / "snap_sensitivity.json"
-    if set(presets) != set(PRESETS) and path.exists():
-        # A rerun of some presets keeps the others' rows; each row carries its own date and code.
-        kept = json.loads(path.read_text())["presets"]
-        out["presets"] = {p: rows for p, rows in kept.items() if p in PRESETS}
+    out = {"what": __doc__.splitlines()[0], "full_contact": FULL_CONTACT, "tight": TIGHT}
+    out["presets"] = kept_rows(path, presets, PRESETS)
     for preset in presets:
         for mu in (0.0, 0.3):
-            r = out["presets"].setdefault(preset, {})[f"mu {mu:g}"] = run(preset, mu)
-            r |= {"date": time.strftime("%Y-%m-%d %H:%M"), "code": code_version()["commit"]}
+            r = out["presets"].setdefault(preset, {})[f"mu {mu:g}"] = stamped(run(preset, mu))
             print(preset, mu, json.dumps({k: v for k, v in r.items() if k != "curves"}), flush=True)
     write_result(out, path)
     plot(out, OUT / "snap_sensitivity.png")
