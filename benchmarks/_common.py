@@ -228,12 +228,18 @@ def presets_option(parser, known, argv) -> list[str]:
     return presets
 
 
-def kept_rows(path: Path, rerun, known) -> dict:
-    """On a rerun of some presets, the other presets' rows (``["presets"]``) of the previous
-    result at ``path``; each row carries its own date and commit (:func:`stamped`)."""
+def previous_result(path: Path, rerun, known) -> dict:
+    """The result at ``path`` when only some of ``known`` are rerun (its other rows are kept);
+    empty for a run of all of them or when there is none."""
     if set(rerun) == set(known) or not path.exists():
         return {}
-    rows = json.loads(path.read_text()).get("presets", {})
+    return json.loads(path.read_text())
+
+
+def kept_rows(previous: dict, rerun, known) -> dict:
+    """The rows (``["presets"]``) of :func:`previous_result` for the presets not rerun; each
+    carries its own date and commit (:func:`stamped`)."""
+    rows = previous.get("presets", {})
     return {p: r for p, r in rows.items() if p in known and p not in rerun}
 
 

@@ -34,7 +34,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import code_version, kept_rows, presets_option, scan_timing, stamped
+from _common import code_version, kept_rows, presets_option, previous_result, scan_timing, stamped
 
 import jsnap
 from jsnap._apps.simulate import ring_copies
@@ -362,8 +362,8 @@ def main(argv=None) -> int:
     path = OUT / "gallery.json"
     partial = set(presets) != set(PRESETS)
     # The materials chart needs every preset's curves, so a partial rerun keeps it as it was.
-    before = json.loads(path.read_text()) if partial and path.exists() else {}
-    rows = kept_rows(path, presets, PRESETS)
+    before = previous_result(path, presets, PRESETS)
+    rows = kept_rows(before, presets, PRESETS)
     curves = {}
     for preset in presets:
         print(f"{preset} ...", flush=True)

@@ -37,7 +37,7 @@ import json
 from pathlib import Path
 
 import numpy as np
-from _common import kept_rows, load_scene, presets_option, stamped, write_result
+from _common import kept_rows, load_scene, presets_option, previous_result, stamped, write_result
 
 import jsnap
 from jsnap._geometry.scene import default_scene_path
@@ -168,7 +168,7 @@ def main(argv=None) -> int:
     presets = presets_option(ap, PRESETS, argv)
     path = OUT / "snap_sensitivity.json"
     out = {"what": __doc__.splitlines()[0], "full_contact": FULL_CONTACT, "tight": TIGHT}
-    out["presets"] = kept_rows(path, presets, PRESETS)
+    out["presets"] = kept_rows(previous_result(path, presets, PRESETS), presets, PRESETS)
     for preset in presets:
         for mu in (0.0, 0.3):
             r = out["presets"].setdefault(preset, {})[f"mu {mu:g}"] = stamped(run(preset, mu))
