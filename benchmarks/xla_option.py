@@ -1,26 +1,27 @@
-"""XLA's small-loop option measured: the shipped default scene's step rate with and without
-``jsnap.configure_xla_cpu()``, side by side (what the opt-in buys, and what a program that does
-not opt in forgoes).
+"""``jsnap.configure_xla_cpu()`` measured: the shipped default scene's step rate with and without
+it, side by side (what the opt-in buys, and what a program that does not opt in forgoes). It
+sets XLA's small-loop option and XLA's own kernels for every operation; the second matters on
+the contact-heavy presets, not here (``benchmarks/xla_kernels.py`` measures it on every preset).
 
     python benchmarks/xla_option.py [--quick] [--rounds N]
 
 The scene is ``jsnap.load_scene()`` as shipped: the reduced model, float32 rollout, P2 0.8 mm,
-the scene's contact settings (64 slots, APGD, up to 500 iterations). XLA reads its flags once per
-process, so every measurement is a fresh process (this script with ``--child``): it imports
-jsnap, calls ``jsnap.configure_xla_cpu()`` right after (``with``) or not (``without``, the option
-also taken out of the ``XLA_FLAGS`` it inherits: ``jsnap bench`` runs with it), builds the scene
-(the reduced basis from the jsnap cache after the first build), prepares it, rolls it out once
-(compile) and times ``REPEATS`` further ``jsnap.rollout`` calls (``lax.scan``); its rate is
-their median. ``ROUNDS`` rounds each run both, in alternating order, so that the shared
-machine's load falls on both alike; the rates reported are the medians over the rounds, the
-speedup their ratio (each round's own ratio is kept too, and the same ratio of each process's
-fastest rollout, which a burst of load on the shared machine disturbs less), and the 1-minute
-load average is recorded before and after every process. The option compiles the contact solver's loops into
-one kernel each; it does not change what they compute. To show it, the first round's two
-processes also roll the scene out in float64 after their timings (``max |dF|`` over the peak:
-round-off), and every round compares the two float32 peaks (float32 round-off of another
-compilation can move the snap, the force's drop, by a step, so the curves' largest difference
-is no measure of it).
+the scene's contact settings (64 slots, APGD, up to 500 iterations). XLA reads its flags once
+per process, so every measurement is a fresh process (this script with ``--child``): it imports
+jsnap, calls ``jsnap.configure_xla_cpu()`` right after (``with``) or not (``without``, the
+option and the own-kernels flag also taken out of the ``XLA_FLAGS`` it inherits: ``jsnap bench``
+runs with them), builds the scene (the reduced basis from the jsnap cache after the first
+build), prepares it, rolls it out once (compile) and times ``REPEATS`` further ``jsnap.rollout``
+calls (``lax.scan``); its rate is their median. ``ROUNDS`` rounds each run both, in alternating
+order, so that the shared machine's load falls on both alike; the rates reported are the medians
+over the rounds, the speedup their ratio (each round's own ratio is kept too, and the same ratio
+of each process's fastest rollout, which a burst of load on the shared machine disturbs less),
+and the 1-minute load average is recorded before and after every process. The option compiles
+the contact solver's loops into one kernel each; it does not change what they compute. To show
+it, the first round's two processes also roll the scene out in float64 after their timings
+(``max |dF|`` over the peak: round-off), and every round compares the two float32 peaks (float32
+round-off of another compilation can move the snap, the force's drop, by a step, so the curves'
+largest difference is no measure of it).
 
 ``--quick`` (CI): the 2.0 mm mesh, one round, three timed rollouts, no float64 rollout. Writes
 benchmarks/results/xla_option{,_quick}.{json,png}.
@@ -40,7 +41,7 @@ from pathlib import Path
 import numpy as np
 from _common import code_version
 
-from jsnap._apps.xla import _EXTRA, SMALL_LOOP_BYTES, SMALL_LOOP_OPTION
+from jsnap._apps.xla import _EXTRA, LIBRARY_FLAG, SMALL_LOOP_BYTES, SMALL_LOOP_OPTION
 
 OUT = Path(__file__).parent / "results"
 ROUNDS, REPEATS = 6, 15  # an even number of rounds: each option goes first in half of them
@@ -50,10 +51,12 @@ OPTIONS = ("with", "without")
 
 
 def without_small_loop_option(flags: str) -> str:
-    """``XLA_FLAGS`` without XLA's small-loop option (the rest of its
-    ``--xla_backend_extra_options`` kept)."""
+    """``XLA_FLAGS`` without ``jsnap.configure_xla_cpu``'s options: XLA's small-loop option (the
+    rest of its ``--xla_backend_extra_options`` kept) and its own-kernels flag."""
     out = []
     for token in flags.split():
+        if token.startswith(LIBRARY_FLAG):
+            continue
         if token.startswith(_EXTRA):
             kept = [o for o in token[len(_EXTRA) :].split(",") if o and not o.startswith(SMALL_LOOP_OPTION)]
             if kept:
@@ -100,6 +103,7 @@ def child(option: str, quick: bool, float64: bool) -> dict:
         "configure_xla_cpu": how,
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
         "small_loop_option": SMALL_LOOP_OPTION in os.environ.get("XLA_FLAGS", ""),
+        "own_kernels": LIBRARY_FLAG in os.environ.get("XLA_FLAGS", ""),
         "device": f"jax {dev.platform}" + (f" ({dev.device_kind})" if dev.device_kind != dev.platform else ""),
         "method": model.method,
         "dtype": model.dtype,
@@ -190,7 +194,8 @@ def chart(result: dict, path: Path) -> None:
     bx.legend(fontsize=8, loc="lower right")
     bx.set_title("per round (1-minute load average over its two processes)", fontsize=9)
     fig.suptitle(
-        f"XLA's small-loop option ({SMALL_LOOP_OPTION}={SMALL_LOOP_BYTES}) on the shipped default scene\n"
+        f"jsnap.configure_xla_cpu() ({SMALL_LOOP_OPTION}={SMALL_LOOP_BYTES}, XLA's own kernels) on the "
+        f"shipped default scene\n"
         f"{result['machine']}",
         fontsize=9,
     )

@@ -11,7 +11,7 @@ import pytest
 
 from jsnap._apps import bench as _bench
 from jsnap._apps.cli import main as cli_main
-from jsnap._apps.xla import SMALL_LOOP_OPTION, with_small_loop_option
+from jsnap._apps.xla import SMALL_LOOP_OPTION, xla_cpu_flags
 
 ROOT = Path(__file__).resolve().parent.parent / "benchmarks"
 
@@ -65,8 +65,10 @@ def test_quick_benchmarks_run(tmp_path, monkeypatch):
 
 
 def test_quick_xla_flags_keep_the_users():
-    """The quick runs add their XLA flags to the user's, and a flag the user sets wins."""
-    flags = _bench.QUICK_XLA_FLAGS.split()
+    """The quick runs add their XLA flags to the user's (configure_xla_cpu's, then the quick
+    ones), and a flag the user sets wins."""
+    quick = [f for f in _bench.QUICK_XLA_FLAGS.split() if not f.startswith("--xla_backend_extra_options=")]
+    flags = [*xla_cpu_flags("").split(), *quick]
     assert _bench.quick_xla_flags("").split() == flags
     assert _bench.quick_xla_flags(" --xla_foo=1 ").split() == ["--xla_foo=1", *flags]
     mine = "--xla_backend_optimization_level=3"
@@ -81,8 +83,8 @@ def test_quick_xla_flags_keep_the_users():
     user = "--xla_backend_extra_options=foo=1"
     out = _bench.quick_xla_flags(user)
     assert f"--xla_backend_extra_options=foo=1,{SMALL_LOOP_OPTION}=" in out
-    assert _bench.quick_xla_flags(with_small_loop_option(user)) == out
-    assert _bench.quick_xla_flags(with_small_loop_option("")) == _bench.quick_xla_flags("")
+    assert _bench.quick_xla_flags(xla_cpu_flags(user)) == out
+    assert _bench.quick_xla_flags(xla_cpu_flags("")) == _bench.quick_xla_flags("")
 
 
 def test_full_run_untimed_side_by_side_then_timed_alone(tmp_path, monkeypatch):

@@ -1,4 +1,4 @@
-"""The frequency, throughput, precision and xla_option benchmarks: registered with `jsnap bench`,
+"""The frequency, throughput, precision, xla_option and xla_kernels benchmarks: registered with `jsnap bench`,
 and their committed results have the headline the README table reads (positive rates, the
 expected keys); the committed precision measurement justifies the default rollout dtype.
 
@@ -13,7 +13,12 @@ import pytest
 
 import jsnap
 from jsnap._apps import bench as _bench
+from jsnap._apps.xla import LIBRARY_FLAG, SMALL_LOOP_OPTION
 from jsnap._build.model import rollout_dtype
+
+# The reduced models' float32 peaks under both kernel choices: round-off, but the box lid's
+# tilted peak is a single step's spike of its sawtooth (docs/validation.md), which round-off moves.
+PEAK_AGREEMENT = 0.01
 
 ROOT = Path(__file__).resolve().parent.parent / "benchmarks"
 
@@ -25,7 +30,7 @@ def _load(stem):
     return json.loads(path.read_text())
 
 
-@pytest.mark.parametrize("name", ["frequency", "throughput", "precision", "xla_option", "scale"])
+@pytest.mark.parametrize("name", ["frequency", "throughput", "precision", "xla_option", "xla_kernels", "scale"])
 def test_registered_with_quick_variant(name):
     bench = {b.name: b for b in _bench.available(ROOT)}
     assert name in bench and bench[name].quick
@@ -95,6 +100,26 @@ def test_xla_option_headline():
     # The option changes how the solver's loops are compiled, not what they compute.
     assert h["float64_force_max_abs_diff_rel_peak"] < 1e-6
     assert "steps/s" in _bench._xla_option(d)
+
+
+def test_xla_kernels_headline():
+    """Every preset measured in both kinds of process, each round one of each; the library
+    processes ran with XLA's default fusions, the others with configure_xla_cpu's flags. The
+    option changes which kernels run, not what they compute: the reduced models' float32 peaks
+    agree to round-off, a step of the force's sawtooth at most."""
+    d = _load("xla_kernels")
+    h = d["headline"]
+    assert not d["quick"] and d["rounds_run"] == len(d["rounds"]) >= 3
+    assert {"default", "two_hook_clip", "box_lid", "annular", "cable_latch"} <= set(h)
+    for r in d["rounds"]:
+        assert LIBRARY_FLAG not in r["library"]["xla_flags"] and SMALL_LOOP_OPTION in r["library"]["xla_flags"]
+        assert r["own"]["configure_xla_cpu"] == "set" and f"{LIBRARY_FLAG}=" in r["own"]["xla_flags"].split()
+    for name, v in h.items():
+        assert v["ok"], name
+        assert v["library_steps_per_second"] > 0 and v["own_steps_per_second"] > 0
+        assert v["speedup"] == pytest.approx(v["own_steps_per_second"] / v["library_steps_per_second"])
+        assert v["peak_rel_diff"] < PEAK_AGREEMENT, name
+    assert "steps/s" in _bench._xla_kernels(d)
 
 
 def test_scale_headline():

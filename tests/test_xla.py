@@ -1,10 +1,11 @@
-"""XLA:CPU's small-loop option (jsnap._apps.xla): an explicit opt-in, never a side effect.
+"""XLA:CPU's small-loop and own-kernels options (jsnap._apps.xla): an explicit opt-in, never a
+side effect.
 
 ``import jsnap`` changes no process-wide setting: neither ``XLA_FLAGS`` nor
-``jax_enable_x64``. ``jsnap.configure_xla_cpu()`` sets the option when called before JAX starts
-its CPU backend ("set"), keeps the user's own value ("user"), and warns and changes nothing
-when called too late ("late"). Each check runs in a fresh interpreter: both settings belong to
-the whole process.
+``jax_enable_x64``. ``jsnap.configure_xla_cpu()`` sets the options when called before JAX starts
+its CPU backend ("set"), keeps the user's own values ("user" when both are given), and warns and
+changes nothing when called too late ("late"). Each check runs in a fresh interpreter: both
+settings belong to the whole process.
 """
 
 import json
@@ -18,6 +19,8 @@ import pytest
 from jsnap._apps import xla as _xla
 
 OPTION = f"{_xla.SMALL_LOOP_OPTION}={_xla.SMALL_LOOP_BYTES}"
+# What configure_xla_cpu adds after the small-loop option (nothing where jaxlib has no such flag).
+OWN = f" {_xla.LIBRARY_FLAG}=" if _xla.library_flag_known() else ""
 
 
 @pytest.mark.parametrize(
@@ -61,11 +64,16 @@ _PROBE = textwrap.dedent(
     import jax.numpy as jnp
     loop = jax.jit(lambda a: jax.lax.fori_loop(0, 10, lambda i, a: jnp.sin(a) + 1.0, a))
     text = loop.lower(jnp.ones((64, 64), jnp.float32)).compile().as_text()
+    # A reduction over three coordinates, as the signed distances' norms: a YNNPACK library
+    # fusion unless XLA keeps it in its own kernels.
+    norms = jax.jit(lambda a: jnp.sum(a * a, axis=-1)).lower(jnp.ones((1822, 3), jnp.float32))
+    library = "__ynn_fusion" in norms.compile().as_text()
     print(json.dumps(dict(
         after_import=after_import,
         returned=returned,
         warnings=[f"{{w.category.__name__}}: {{w.message}}" for w in caught],
         hoisted="xla_cpu_small_call" in text,
+        library=library,
         flags=os.environ.get("XLA_FLAGS"),
         x64=bool(jax.config.jax_enable_x64),
     )))
@@ -103,8 +111,9 @@ def test_import_changes_no_process_setting(flags):
 def test_configure_before_jax_starts_compiles_small_loops_into_one_kernel():
     got = _probe(action="returned = jsnap.configure_xla_cpu()")
     assert got["returned"] == "set"
-    assert got["flags"] == f"--xla_backend_extra_options={OPTION}"
+    assert got["flags"] == f"--xla_backend_extra_options={OPTION}{OWN}"
     assert got["hoisted"]
+    assert not got["library"]
     assert got["warnings"] == []
     assert got["x64"] is False  # the opt-in is about XLA's flags only
 
@@ -114,14 +123,37 @@ def test_configure_joins_and_keeps_the_users_flags():
     (here 0 bytes: no loop is small enough, so the probe's loop stays a loop)."""
     got = _probe("--xla_cpu_use_fusion_emitters=false", action="returned = jsnap.configure_xla_cpu()")
     assert got["returned"] == "set"
-    assert got["flags"] == f"--xla_cpu_use_fusion_emitters=false --xla_backend_extra_options={OPTION}"
+    assert got["flags"] == f"--xla_cpu_use_fusion_emitters=false --xla_backend_extra_options={OPTION}{OWN}"
     assert got["hoisted"]
     mine = f"--xla_backend_extra_options={_xla.SMALL_LOOP_OPTION}=0"
     got = _probe(mine, action="returned = jsnap.configure_xla_cpu()")
-    assert got["returned"] == "user"
-    assert got["flags"] == mine
+    assert got["returned"] == ("set" if OWN else "user")
+    assert got["flags"] == mine + OWN
     assert not got["hoisted"]
     assert got["warnings"] == []
+
+
+@pytest.mark.skipif(not OWN, reason="the installed jaxlib has no library-fusion flag")
+def test_own_kernels_option_is_what_keeps_reductions_out_of_the_library():
+    """Without the option XLA hands the three-coordinate reduction to YNNPACK; with jsnap's
+    options it does not; a value of the flag the user gives (here the library for products
+    only) is kept, and with both given configure_xla_cpu changes nothing."""
+    assert _probe()["library"]
+    assert not _probe(f"{_xla.LIBRARY_FLAG}=")["library"]
+    mine = f"--xla_backend_extra_options={OPTION} {_xla.LIBRARY_FLAG}=LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT"
+    got = _probe(mine, action="returned = jsnap.configure_xla_cpu()")
+    assert got["returned"] == "user" and got["flags"] == mine
+    assert not got["library"]
+
+
+def test_own_kernels_option_only_where_jaxlib_has_the_flag(monkeypatch):
+    """XLA aborts on a flag it does not know: without it in jaxlib the flags are unchanged."""
+    monkeypatch.setattr(_xla, "library_flag_known", lambda: False)
+    assert _xla.with_own_kernels_option("--x=1") == "--x=1"
+    assert _xla.xla_cpu_flags("") == f"--xla_backend_extra_options={OPTION}"
+    monkeypatch.setattr(_xla, "library_flag_known", lambda: True)
+    assert _xla.with_own_kernels_option("--x=1") == f"--x=1 {_xla.LIBRARY_FLAG}="
+    assert _xla.with_own_kernels_option(f"{_xla.LIBRARY_FLAG}=X") == f"{_xla.LIBRARY_FLAG}=X"
 
 
 def test_configure_after_jax_started_warns_and_changes_nothing():
@@ -132,6 +164,7 @@ def test_configure_after_jax_started_warns_and_changes_nothing():
     assert got["returned"] == "late"
     assert got["flags"] is None
     assert not got["hoisted"]
+    assert got["library"] == bool(OWN)
     assert len(got["warnings"]) == 1
     assert got["warnings"][0].startswith(
         "UserWarning: jsnap.configure_xla_cpu() was called after JAX started its CPU backend"

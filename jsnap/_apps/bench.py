@@ -31,7 +31,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from jsnap._apps.xla import _EXTRA, SMALL_LOOP_BYTES, SMALL_LOOP_OPTION, with_small_loop_option
+from jsnap._apps.xla import _EXTRA, SMALL_LOOP_BYTES, SMALL_LOOP_OPTION, xla_cpu_flags
 
 
 @dataclass(frozen=True)
@@ -429,6 +429,17 @@ def _xla_option(d):
     return out
 
 
+def _xla_kernels(d):
+    h = d["headline"]
+    lo, hi = d["load_average_range"]
+    parts = [f"{n} {v['library_steps_per_second']:.0f} → {v['own_steps_per_second']:.0f}" for n, v in h.items()]
+    return (
+        "steps/s with XLA's library fusions → its own kernels (jsnap.configure_xla_cpu()): "
+        + ", ".join(parts)
+        + f" (medians of {d['rounds_run']} rounds, load average {lo:.1f}-{hi:.1f})"
+    )
+
+
 def _generic(d):
     for key in ("summary", "headline"):
         if key in d:
@@ -573,6 +584,12 @@ BENCHMARKS = [
         "step rate of the shipped scene with and without jsnap.configure_xla_cpu()",
         True,
         _xla_option,
+    ),
+    Bench(
+        "xla_kernels",
+        "every preset's step rate with XLA's library fusions and with its own kernels",
+        True,
+        _xla_kernels,
     ),
 ]
 
@@ -731,12 +748,13 @@ QUICK_XLA_FLAGS = (
 
 
 def quick_xla_flags(user: str) -> str:
-    """``XLA_FLAGS`` for the quick runs: the user's flags with XLA's small-loop option
-    (``with_small_loop_option``: joined to the user's ``--xla_backend_extra_options``, the
-    user's own value kept), then each other flag of ``QUICK_XLA_FLAGS`` that the user has not
-    set (the user's own setting of a flag wins). Idempotent: flags that already went through
-    ``jsnap.configure_xla_cpu`` give the same result."""
-    flags = with_small_loop_option(user.strip())
+    """``XLA_FLAGS`` for the quick runs: the user's flags with ``jsnap.configure_xla_cpu``'s
+    options (``xla_cpu_flags``: the small-loop option joined to the user's
+    ``--xla_backend_extra_options``, the user's own values kept), then each other flag of
+    ``QUICK_XLA_FLAGS`` that the user has not set (the user's own setting of a flag wins).
+    Idempotent: flags that already went through ``jsnap.configure_xla_cpu`` give the same
+    result."""
+    flags = xla_cpu_flags(user.strip())
     extra = [f for f in QUICK_XLA_FLAGS.split() if not f.startswith(_EXTRA) and f.split("=")[0] not in flags]
     return " ".join([flags, *extra]).strip()
 
