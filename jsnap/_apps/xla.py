@@ -31,8 +31,8 @@ thread pool; a contact step is hundreds of such operations on small arrays (the 
 points' signed distances reduced over three coordinates, a ~100 x 140 Delassus product), where
 the call costs more than the arithmetic. ``--xla_cpu_experimental_ynn_fusion_type=`` (an empty
 list) turns that off. Measured side by side in fresh processes (``benchmarks/xla_kernels.py``),
-it speeds up the contact-heavy presets by about a third (the two-hook clip, the box lid) and
-slows the annular snap, whose step is mostly a few larger products. The flag is experimental
+it speeds up the contact-heavy presets 1.2-1.4x (the two-hook clip, the box lid) and slows the
+annular snap by 15 %, whose step is mostly a few larger products. The flag is experimental
 in XLA, so it is set only where the installed jaxlib has it (:func:`library_flag_known`); an
 ``XLA_FLAGS`` that names it is kept as it is.
 """
@@ -117,7 +117,7 @@ def configure_xla_cpu() -> str:
     """Set XLA:CPU's two options for this process: the contact solvers' loops compiled into
     single kernels instead of being run kernel by kernel (the reduced model's steps run 1.6-1.7x
     faster, ``benchmarks/xla_option.py``), and XLA's own kernels for every operation instead of
-    library calls (about a third faster again on the contact-heavy presets,
+    library calls (1.2-1.4x faster again on the contact-heavy presets,
     ``benchmarks/xla_kernels.py``).
 
     The options (``xla_cpu_small_while_loop_byte_threshold`` set to :data:`SMALL_LOOP_BYTES`,
