@@ -42,9 +42,10 @@ import numpy as np
 from _common import code_version, write_result
 
 from jsnap._apps.xla import LIBRARY_FLAG, with_small_loop_option
+from jsnap._geometry.scene import default_scene_path
 
 OUT = Path(__file__).parent / "results"
-SCENES = Path(__file__).resolve().parents[1] / "jsnap" / "scenes"
+SCENES = default_scene_path().parent
 ROUNDS, REPEATS, BATCH = 3, 5, 32
 QUICK_ROUNDS, QUICK_REPEATS = 1, 3
 PRESETS = ("default", "two_hook_clip", "box_lid", "annular", "cable_latch")
