@@ -12,16 +12,16 @@ arithmetic. ``--xla_cpu_experimental_ynn_fusion_type=`` (an empty list) keeps ev
 in XLA's own kernels.
 
 Every measurement is a fresh process (XLA reads its flags once per process), this script with
-``--child``: ``library`` sets XLA's small-loop option only (``jsnap._apps.xla.with_small_loop_option``,
-what ``configure_xla_cpu`` set before it also chose XLA's own kernels), ``own`` calls
-``jsnap.configure_xla_cpu()``. Each process builds every case (the reduced bases from the jsnap
-cache), rolls each out once (compile) and times ``REPEATS`` further rollouts (``lax.scan``);
-its rate is their median. The cases: each shipped preset's scene as shipped (reduced model,
-float32) and a batch of ``BATCH`` default-scene rollouts (``jsnap.rollout_batch``,
-scene-steps/s). ``ROUNDS`` rounds each run both options,
-the order alternating, so that the shared machine's load falls on both alike; the rates
-reported are medians over the rounds, the speedup their ratio. Both options compute the same
-forces but for round-off: each case's peak under both is recorded.
+``--child``: ``library`` sets XLA's small-loop option only
+(``jsnap._apps.xla.with_small_loop_option``; XLA keeps its default library fusions), ``own``
+calls ``jsnap.configure_xla_cpu()``. Each process builds every case (the reduced bases from the
+jsnap cache), rolls each out once (compile) and times ``REPEATS`` further rollouts
+(``lax.scan``); its rate is their median. The cases: each shipped preset's scene as shipped
+(reduced model, float32) and a batch of ``BATCH`` default-scene rollouts
+(``jsnap.rollout_batch``, scene-steps/s). ``ROUNDS`` rounds each run both options, the order
+alternating, so that the shared machine's load falls on both alike; the rates reported are
+medians over the rounds, the speedup their ratio. Both options compute the same forces but for
+round-off: each case's peak under both is recorded.
 
 ``--quick`` (CI): the default scene and the two-hook clip at a 2.0 mm mesh, one round, three
 timed rollouts, no batch. Writes benchmarks/results/xla_kernels{,_quick}.{json,png}.
@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 from _common import code_version, write_result
 
-from jsnap._apps.xla import LIBRARY_FLAG, with_small_loop_option
+from jsnap._apps.xla import with_small_loop_option, without_xla_cpu_flags
 from jsnap._geometry.scene import default_scene_path
 
 OUT = Path(__file__).parent / "results"
@@ -118,7 +118,7 @@ def child(option: str, quick: bool) -> dict:
 def measure(option: str, quick: bool) -> dict:
     """One fresh process for ``option``, with the load average around it."""
     env = dict(os.environ)
-    flags = " ".join(t for t in env.get("XLA_FLAGS", "").split() if not t.startswith(LIBRARY_FLAG))
+    flags = without_xla_cpu_flags(env.get("XLA_FLAGS", ""))
     if option == "library":
         flags = with_small_loop_option(flags)
     if flags:

@@ -41,29 +41,13 @@ from pathlib import Path
 import numpy as np
 from _common import code_version
 
-from jsnap._apps.xla import _EXTRA, LIBRARY_FLAG, SMALL_LOOP_BYTES, SMALL_LOOP_OPTION
+from jsnap._apps.xla import LIBRARY_FLAG, SMALL_LOOP_BYTES, SMALL_LOOP_OPTION, without_xla_cpu_flags
 
 OUT = Path(__file__).parent / "results"
 ROUNDS, REPEATS = 6, 15  # an even number of rounds: each option goes first in half of them
 QUICK_ROUNDS, QUICK_REPEATS = 1, 3
 QUICK_CHANGES = {"solver.mesh_size": 2.0}
 OPTIONS = ("with", "without")
-
-
-def without_small_loop_option(flags: str) -> str:
-    """``XLA_FLAGS`` without ``jsnap.configure_xla_cpu``'s options: XLA's small-loop option (the
-    rest of its ``--xla_backend_extra_options`` kept) and its own-kernels flag."""
-    out = []
-    for token in flags.split():
-        if token.startswith(LIBRARY_FLAG):
-            continue
-        if token.startswith(_EXTRA):
-            kept = [o for o in token[len(_EXTRA) :].split(",") if o and not o.startswith(SMALL_LOOP_OPTION)]
-            if kept:
-                out.append(_EXTRA + ",".join(kept))
-        else:
-            out.append(token)
-    return " ".join(out)
 
 
 def child(option: str, quick: bool, float64: bool) -> dict:
@@ -130,7 +114,7 @@ def child(option: str, quick: bool, float64: bool) -> dict:
 def measure(option: str, quick: bool, float64: bool) -> dict:
     """One fresh process for ``option``, with the load average around it."""
     env = dict(os.environ)
-    flags = without_small_loop_option(env.get("XLA_FLAGS", ""))
+    flags = without_xla_cpu_flags(env.get("XLA_FLAGS", ""))
     if flags:
         env["XLA_FLAGS"] = flags
     else:

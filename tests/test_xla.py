@@ -146,6 +146,12 @@ def test_own_kernels_option_is_what_keeps_reductions_out_of_the_library():
     assert not got["library"]
 
 
+@pytest.mark.parametrize("flags", ["", "--x=2", "--xla_backend_extra_options=foo=1 --x=2"])
+def test_without_flags_undoes_configure_and_keeps_the_users(flags):
+    """What the benchmarks' processes that do not opt in run with: the user's flags as given."""
+    assert _xla.without_xla_cpu_flags(_xla.xla_cpu_flags(flags)) == flags
+
+
 def test_own_kernels_option_only_where_jaxlib_has_the_flag(monkeypatch):
     """XLA aborts on a flag it does not know: without it in jaxlib the flags are unchanged."""
     monkeypatch.setattr(_xla, "library_flag_known", lambda: False)

@@ -108,6 +108,23 @@ def xla_cpu_flags(flags: str) -> str:
     return with_own_kernels_option(with_small_loop_option(flags))
 
 
+def without_xla_cpu_flags(flags: str) -> str:
+    """``flags`` without :func:`configure_xla_cpu`'s settings: the small-loop option (the rest of
+    an ``--xla_backend_extra_options`` kept) and :data:`LIBRARY_FLAG`. What a process that does
+    not opt in runs with, for the benchmarks that compare the two."""
+    out = []
+    for token in flags.split():
+        if token.startswith(LIBRARY_FLAG):
+            continue
+        if token.startswith(_EXTRA):
+            kept = [o for o in token[len(_EXTRA) :].split(",") if o and not o.startswith(SMALL_LOOP_OPTION)]
+            if kept:
+                out.append(_EXTRA + ",".join(kept))
+        else:
+            out.append(token)
+    return " ".join(out)
+
+
 def _backend_started() -> bool:
     bridge = sys.modules.get("jax._src.xla_bridge")
     return bool(getattr(bridge, "_backends", None))
