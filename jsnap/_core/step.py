@@ -411,13 +411,23 @@ def _step(model: Model, prepared: Prepared, state: State, control):
         slots = (prob.idx, prob.active, prob.points, prob.overflow)
         return _Pass(dv, Gamma, sol, *slots, phi_end, fresh, jnp.asarray(second))
 
-    def again(p):
-        """The second solve after ``p``: its fresh points added, warm-started from its forces."""
-        score = jnp.where(p.fresh, p.phi_end, phi_now)
-        return attempt(score, state.gamma.at[p.idx].set(p.sol.gamma * p.active[:, None]), True)
+    def solve_pass(p: _Pass, second):
+        """The first solve, or the second after ``p``: its fresh points added, warm-started
+        from its forces."""
+        score = jnp.where(second & p.fresh, p.phi_end, phi_now)
+        warm = jnp.where(second, state.gamma.at[p.idx].set(p.sol.gamma * p.active[:, None]), state.gamma)
+        return attempt(score, warm, second)
 
-    first = attempt(phi_now, state.gamma, False)
-    res = jax.lax.cond(jnp.any(first.fresh), again, lambda p: p, first)
+    def maybe(p: _Pass, second):
+        return jax.lax.cond(~second | jnp.any(p.fresh), solve_pass, lambda p, _: p, p, second), None
+
+    # Both solves are one compiled attempt, run by a two-pass scan whose second pass is skipped
+    # when the first carried no fresh point into the rigid part: the attempt (collision, every
+    # size's solver) written out twice doubled the step's compile time.
+    blank = jax.tree_util.tree_map(
+        lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(attempt, phi_now, state.gamma, jnp.asarray(False))
+    )
+    res, _ = jax.lax.scan(maybe, blank, jnp.asarray([False, True]))
     Gamma, sol, idx, active = res.Gamma, res.sol, res.idx, res.active
 
     # 5. Update.
