@@ -37,9 +37,23 @@ _LONGEST_FIRST = (
 )
 
 
-def pytest_collection_modifyitems(items):
+def pytest_addoption(parser):
+    parser.addoption(
+        "--xslow",
+        action="store_true",
+        default=os.environ.get("JSNAP_XSLOW", "") not in ("", "0"),
+        help="also run the checks marked xslow (benchmark-sized: minutes each); or JSNAP_XSLOW=1",
+    )
+
+
+def pytest_collection_modifyitems(config, items):
     rank = {name: i for i, name in enumerate(_LONGEST_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
+    if not config.getoption("--xslow"):
+        skip = pytest.mark.skip(reason="xslow: a benchmark-sized check; run it with `python -m pytest --xslow`")
+        for item in items:
+            if "xslow" in item.keywords:
+                item.add_marker(skip)
 
 
 @pytest.fixture(scope="module", autouse=True)

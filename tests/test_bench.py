@@ -40,28 +40,49 @@ def test_readme_table_from_results(tmp_path, monkeypatch):
     assert "not run yet" in next(r for r in rows if "contact_squeeze" in r)
 
 
-@pytest.mark.slow
-def test_quick_benchmarks_run(tmp_path, monkeypatch):
-    """`jsnap bench --quick` runs every script that has a quick variant, end to end, on a copy
-    of benchmarks/ (CI runs it so that the benchmarks never rot; its time is recorded in
-    results/bench_times_quick.json, not asserted here)."""
+# Three scripts whose quick variants take seconds: the runner end to end (worker processes, the
+# times file, the README) on every run of the suite.
+SMOKE = ("contact_squeeze", "fem_convergence", "strain")
+
+
+def _quick_run(tmp_path, monkeypatch, names: tuple[str, ...]) -> dict:
+    """``jsnap bench [NAMES] --quick`` on a copy of benchmarks/, in its own process (the scripts'
+    compiled programs and models stay out of the test process's memory); its times file."""
     bench = tmp_path / "benchmarks"
     shutil.copytree(ROOT, bench, ignore=shutil.ignore_patterns("results", "__pycache__"))
     monkeypatch.setenv("JSNAP_BENCHMARKS", str(bench))
-    # Its own process: fifteen scripts' compiled programs and models stay out of the test
-    # process's memory.
     run = subprocess.run(
-        [sys.executable, "-m", "jsnap._apps.cli", "bench", "--quick"], cwd=tmp_path, check=False
+        [sys.executable, "-m", "jsnap._apps.cli", "bench", *names, "--quick"], cwd=tmp_path, check=False
     )
     assert run.returncode == 0
     times = json.loads((bench / "results" / "bench_times_quick.json").read_text())
-    quick = [b.name for b in _bench.available(bench) if b.quick]
-    assert sorted(times["scripts"]) == sorted(quick)
     assert all(t["ok"] for t in times["scripts"].values())
-    readme = (bench / "README.md").read_text()
-    assert "`jsnap bench --quick`:" in readme
     # The flags the scripts were compiled with are recorded.
-    assert times["complete_run"]["xla_flags"] == _bench.quick_xla_flags(os.environ.get("XLA_FLAGS", ""))
+    assert times["last"]["xla_flags"] == _bench.quick_xla_flags(os.environ.get("XLA_FLAGS", ""))
+    return times
+
+
+def test_quick_benchmarks_of_a_few_scripts_run(tmp_path, monkeypatch):
+    """`jsnap bench NAME... --quick` runs the named scripts' quick variants end to end and records
+    their times, not a complete run's."""
+    times = _quick_run(tmp_path, monkeypatch, SMOKE)
+    assert sorted(times["scripts"]) == sorted(SMOKE)
+    assert "complete_run" not in times
+    for name in SMOKE:
+        assert (tmp_path / "benchmarks" / "results" / f"{name}_quick.json").is_file()
+
+
+@pytest.mark.xslow
+def test_quick_benchmarks_run(tmp_path, monkeypatch):
+    """`jsnap bench --quick` runs every script that has a quick variant, end to end (so that the
+    benchmarks never rot; its time is recorded in results/bench_times_quick.json, not asserted
+    here). Benchmark-sized: about 8 minutes on two cores."""
+    times = _quick_run(tmp_path, monkeypatch, ())
+    quick = [b.name for b in _bench.available(ROOT) if b.quick]
+    assert sorted(times["scripts"]) == sorted(quick)
+    readme = (tmp_path / "benchmarks" / "README.md").read_text()
+    assert "`jsnap bench --quick`:" in readme
+    assert times["complete_run"]["xla_flags"] == times["last"]["xla_flags"]
 
 
 def test_quick_xla_flags_keep_the_users():
