@@ -690,8 +690,8 @@ def _run_in_process(argv: list[str], cwd: Path) -> int:
 
 def _record_times(root: Path, times: dict, quick: bool, complete: bool, wall: float, **how) -> None:
     """Merge the scripts' wall times into ``results/bench_times{_quick}.json``; a run of every
-    script also records its total (the budgets: 30 min for all, 3 min for ``--quick``) and
-    ``how`` it ran (workers, compiler flags)."""
+    script also records its total and ``how`` it ran (workers, compiler flags): the
+    benchmarks README quotes them."""
     path = root / "results" / f"bench_times{'_quick' if quick else ''}.json"
     data = json.loads(path.read_text()) if path.is_file() else {}
     data.setdefault("scripts", {}).update(times)
