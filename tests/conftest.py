@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from jsnap._build import fem as _fem
+from jsnap._build.cache import switched_off
 from jsnap._build.fem import sparse_blocks
 from jsnap._geometry.cantilever import mesh_box
 
@@ -41,7 +42,8 @@ def pytest_addoption(parser):
     parser.addoption(
         "--xslow",
         action="store_true",
-        default=os.environ.get("JSNAP_XSLOW", "") not in ("", "0"),
+        # Off by default; set, it reads like jsnap's other switches (0, false, no, off: off).
+        default=bool(os.environ.get("JSNAP_XSLOW", "").strip()) and not switched_off("JSNAP_XSLOW"),
         help="also run the checks marked xslow (benchmark-sized: minutes each); or JSNAP_XSLOW=1",
     )
 

@@ -391,7 +391,7 @@ def _step(model: Model, prepared: Prepared, state: State, control):
     y = model.samples.rest + part.sample_disp(x)
     phi_now, _ = model.rigid.scene_query(frame.local(y), settings.margin)
 
-    def attempt(score, warm, second: bool):
+    def attempt(score, warm, second):
         prob = _contact_problem(model, prepared, state, frame, vbar_free, vp_free, s_p, y, score, warm)
         sol, Gamma, dv = _solve(model, op, prob)
         # 4. Predict-correct: where the solved motion would carry points that were not in the
