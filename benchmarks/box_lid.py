@@ -24,6 +24,13 @@ side by side.
 4. Speed: steps/s of the compiled rollout (median of the timed calls) of the reduced model and
    of the full model (float32 and float64) on the 1.2 mm mesh, and of the shipped reduced
    model, in one process, with the load average.
+5. Rate against the reduced order: the shipped mesh's reduced model (float32) at each of
+   ``ORDER_TOLERANCES``, its coordinates and steps/s, and the least-squares line of the time a
+   step takes against the coordinates. Its intercept is the part of the step no reduction
+   removes (the contact queries of the candidate points, the solver's iterations, the slot
+   bookkeeping): the fastest the lid could step with this contact at any order.
+
+    python benchmarks/box_lid.py --speed-only   # 4 and 5 again, the accuracy rows kept
 
 Writes benchmarks/results/box_lid.{json,png}.
 """
@@ -32,10 +39,20 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 from pathlib import Path
 
 import numpy as np
-from _common import calculix_row, curve_stats, load_scene, plot_speed, speed, timing_row, write_result
+from _common import (
+    calculix_row,
+    curve_stats,
+    load_scene,
+    plot_speed,
+    scan_timing,
+    speed,
+    timing_row,
+    write_result,
+)
 
 import jsnap
 from jsnap._apps.simulate import design_guide_force
@@ -69,6 +86,9 @@ FULL_CONTACT = {"contact.solver": "apgd", "contact.iterations": 5000}
 COARSE = {"solver.mesh_size": 1.2}
 # solver.hsv_tolerance of the reduced models compared for the tilted box (the scene's is 1e-3).
 TOLERANCES = (1e-2, 3e-3, 1e-3)
+# solver.hsv_tolerance of the shipped mesh's reduced models timed for the rate against the order
+# (1e-1 is far too coarse to use: it is there to pin the line's intercept).
+ORDER_TOLERANCES = (1e-1, 1e-2, 3e-3, 1e-3)
 # The moving average (steps: 0.05 mm at the scene's speed) of the smoothed peak.
 WINDOW = 5
 
@@ -116,6 +136,47 @@ def tolerance_sweep(coarse, red_model, Fr, travel, Ff) -> dict:
     return rows
 
 
+def rate_against_order(base, rounds: int = 5) -> dict:
+    """Steps/s of the shipped mesh's reduced model (float32) at each of ``ORDER_TOLERANCES``
+    and the line ``seconds per step = intercept + slope x coordinates`` through them. The
+    models are compiled first and then timed in ``rounds`` rounds, one rollout of each per
+    round, so that the machine's load drifts over all of them alike; the median per model."""
+    models = {}
+    for tol in ORDER_TOLERANCES:
+        model = jsnap.build(base.replace({"solver.hsv_tolerance": tol}))
+        prepared = jsnap.prepare(model)
+        _, first, _ = scan_timing(model, prepared, 1)
+        models[f"{tol:g}"] = (model, prepared, first)
+    times = {key: [] for key in models}
+    for _ in range(rounds):
+        for key, (model, prepared, _) in models.items():
+            times[key] += scan_timing(model, prepared, 1)[2]
+    rows = {}
+    for key, (model, _, first) in models.items():
+        steps = model.motion.shape[0] - 1
+        median = float(np.median(times[key]))
+        rows[key] = {
+            "orders": [int(o) for o in model.part.orders],
+            "dof": int(model.n_dof),
+            "steps": steps,
+            "first_call_s": first,
+            "median_s": median,
+            "steps_per_second": steps / median,
+        }
+        print(f"  hsv_tolerance {key}:", rows[key], flush=True)
+    r = np.array([row["dof"] for row in rows.values()], dtype=float)
+    t = np.array([1.0 / row["steps_per_second"] for row in rows.values()])
+    slope, intercept = np.polyfit(r, t, 1)
+    return {
+        "rows": rows,
+        "rounds": rounds,
+        "load_average": os.getloadavg()[0],
+        "us_per_step_at_no_coordinates": 1e6 * float(intercept),
+        "us_per_step_per_coordinate": 1e6 * float(slope),
+        "steps_per_second_at_no_coordinates": 1.0 / float(intercept),
+    }
+
+
 def compare(acc: dict, tilt: float, mu: float) -> None:
     """``acc["calculix"]``: the case's curves against CalculiX's, where CalculiX ran the case."""
     ref = REFS.get((tilt, mu))
@@ -131,15 +192,25 @@ def main(argv=None) -> int:
         action="store_true",
         help="only compare the curves in results/box_lid.json with the CalculiX curves now there; replot",
     )
-    if parser.parse_args(argv).compare_only:
+    parser.add_argument(
+        "--speed-only",
+        action="store_true",
+        help="only time the models again (speed, rate against order); keep the accuracy rows",
+    )
+    args = parser.parse_args(argv)
+    if args.speed_only:
         out = json.loads((OUT / "box_lid.json").read_text())
-        curves = {}
+        out.pop("code", None)
+        base = jsnap.load_scene(SCENE)
+        out["speed"] = timed(base)
+        write_result(out, OUT / "box_lid.json")
+        plot(out, _curves(out))
+        return 0
+    if args.compare_only:
+        out = json.loads((OUT / "box_lid.json").read_text())
         for key, acc in out["accuracy"].items():
-            tilt, mu = float(key.split()[1]), float(key.split()[3])
-            compare(acc, tilt, mu)
-            curves[tilt, mu] = tuple(
-                np.asarray(acc["curves"][k]) for k in ("travel_mm", "full_N", "reduced_N", "shipped_N")
-            )
+            compare(acc, float(key.split()[1]), float(key.split()[3]))
+        curves = _curves(out)
         (OUT / "box_lid.json").write_text(json.dumps(out, indent=1) + "\n")
         plot(out, curves)
         return 0
@@ -192,11 +263,29 @@ def main(argv=None) -> int:
                 json.dumps({k: v for k, v in acc.items() if k != "curves"}),
                 flush=True,
             )
-    out["speed"] = speed(load_scene(COARSE, base), 5, full_runs=1)
-    out["speed"]["shipped_reduced_float32"] = timing_row(jsnap.build(base), 5)
+    out["speed"] = timed(base)
     write_result(out, OUT / "box_lid.json")
     plot(out, curves)
     return 0
+
+
+def timed(base) -> dict:
+    """Section 4 and 5 of the module docstring: the speed rows, in one process."""
+    rows = speed(load_scene(COARSE, base), 5, full_runs=1)
+    rows["shipped_reduced_float32"] = timing_row(jsnap.build(base), 5)
+    rows["rate_against_order"] = rate_against_order(base)
+    return rows
+
+
+def _curves(out) -> dict:
+    """{(tilt, mu): (travel, full, reduced, shipped)} from a result's accuracy rows."""
+    curves = {}
+    for key, acc in out["accuracy"].items():
+        tilt, mu = float(key.split()[1]), float(key.split()[3])
+        curves[tilt, mu] = tuple(
+            np.asarray(acc["curves"][k]) for k in ("travel_mm", "full_N", "reduced_N", "shipped_N")
+        )
+    return curves
 
 
 def plot(out, curves):
@@ -205,7 +294,7 @@ def plot(out, curves):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(1, 3, figsize=(17, 4.8), gridspec_kw={"width_ratios": [2, 2, 1]})
+    fig, ax = plt.subplots(1, 4, figsize=(21, 4.8), gridspec_kw={"width_ratios": [2, 2, 1, 1.3]})
     for a, tilt in zip(ax[:2], sorted({t for t, _ in curves}, reverse=True), strict=True):
         for mu in (0.0, 0.3):
             travel, Ff, Fr, Fs = curves[tilt, mu]
@@ -243,7 +332,31 @@ def plot(out, curves):
             title=f"box lid, box tilted {tilt:g} deg",
         )
         a.legend(fontsize=7)
-    plot_speed(ax[2], out["speed"])
+    plot_speed(ax[2], {k: v for k, v in out["speed"].items() if k != "rate_against_order"})
+    order = out["speed"].get("rate_against_order")
+    if order is not None:
+        r = np.array([row["dof"] for row in order["rows"].values()])
+        us = np.array([1e6 / row["steps_per_second"] for row in order["rows"].values()])
+        ax[3].plot(r, us, "o", label="shipped mesh, reduced float32")
+        for tol, x, y in zip(order["rows"], r, us, strict=True):
+            ax[3].annotate(f"hsv {tol}", (x, y), fontsize=7, xytext=(4, -10), textcoords="offset points")
+        grid = np.linspace(0, r.max(), 50)
+        ax[3].plot(
+            grid,
+            order["us_per_step_at_no_coordinates"] + order["us_per_step_per_coordinate"] * grid,
+            "--",
+            lw=0.8,
+            label="least-squares line",
+        )
+        ax[3].axhline(1000, color="k", ls="--", lw=0.8, label="1 kHz")
+        ax[3].set(
+            xlim=(0, None),
+            ylim=(0, None),
+            xlabel="reduced coordinates",
+            ylabel="us per step (compiled rollout)",
+            title="box lid: step time against the reduced order",
+        )
+        ax[3].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(OUT / "box_lid.png", dpi=110)
 

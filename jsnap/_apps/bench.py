@@ -176,6 +176,13 @@ def _box_lid(d):
     ccx = acc.get("tilt 0 mu 0", {}).get("calculix")
     if ccx:
         text += f"; untilted shipped mu 0 peak {ccx['shipped_float32']['peak_over_reference']:.3f} x CalculiX's"
+    order = d["speed"].get("rate_against_order")
+    if order:
+        text += (
+            f"; step time {order['us_per_step_at_no_coordinates']:.0f} us + "
+            f"{order['us_per_step_per_coordinate']:.1f} us per reduced coordinate (at most "
+            f"{order['steps_per_second_at_no_coordinates']:.0f} steps/s at any order)"
+        )
     return text
 
 
