@@ -241,6 +241,57 @@ def test_static_normal_compliance_at_the_contact_points(models, asm, scene):
     assert np.all(c["reduced"] <= c_full * (1 + 1e-9))
 
 
+def test_patch_weights_spread_a_unit_load_over_one_side():
+    """Each load case spread over its neighbours on the same side, Gaussian in the distance,
+    a unit total; never across a 90-degree edge; a patch far below the spacing is each point
+    alone."""
+    at = np.array([[0.0, 0, 0], [0.1, 0, 0], [0.2, 0, 0], [0.1, 0, 0]])
+    n = np.array([[0.0, 0, 1], [0, 0, 1], [0, 0, 1], [1, 0, 0]])  # the last: the other side of point 1
+    W = R._patch_weights(at, n, 0.1).toarray()
+    np.testing.assert_allclose(W.sum(axis=0), 1.0, rtol=1e-14)
+    assert np.all(W[3, :3] == 0) and np.all(W[:3, 3] == 0) and W[3, 3] == 1.0
+    # Column 1 (the middle point): its neighbours 0.1 mm = one standard deviation away.
+    np.testing.assert_allclose(W[[0, 2], 1] / W[1, 1], np.exp(-0.5), rtol=1e-12)
+    np.testing.assert_allclose(W[2, 0] / W[1, 0], np.exp(-1.5), rtol=1e-12)  # 2 sigma against 1
+    np.testing.assert_array_equal(R._patch_weights(at, n, 1e-4).toarray(), np.eye(4))
+
+
+def test_reduction_at_patch_loads_keeps_their_compliance(models, asm, scene, cache):
+    """With ``solver.load_patch``, the reduced model keeps the static compliance of every patch
+    load (a unit normal force spread over the candidate points by a Gaussian, built here densely
+    from the points' rest positions and both sides' normals) to the tolerance against the full
+    model, never softer, with fewer coordinates than at point loads."""
+    patch = 0.5
+    reduced = jsnap.build(
+        with_internal(scene.replace({"solver.method": "reduced"}), {"solver.load_patch": patch})
+    )
+    full = models["full"]
+    pts = np.arange(full.n_samples)
+    st = np.asarray(full.samples.stencil)
+    own = np.cross(st[:, 3] - st[:, 2], st[:, 1] - st[:, 0])
+    other = np.cross(st[:, 7] - st[:, 6], st[:, 5] - st[:, 4])
+    own, other = (v / np.linalg.norm(v, axis=1, keepdims=True) for v in (own, other))
+    second = np.linalg.norm(other - own, axis=1) > 1e-6  # a corner: the other side's normal too
+    point = np.concatenate([pts, pts[second]])
+    normal = np.concatenate([own, other[second]])
+    X = np.asarray(full.samples.rest)[point]
+    d = np.linalg.norm(X[:, None] - X[None], axis=-1)
+    W = np.exp(-0.5 * (d / patch) ** 2) * (d <= 4 * patch) * (normal @ normal.T > 0.5)
+    W /= W.sum(axis=0)
+    L = np.zeros((3 * pts.size, point.size))  # the patch loads on the points' force components
+    for a, (p, nrm) in enumerate(zip(point, normal, strict=True)):
+        L[3 * p : 3 * p + 3, a] = nrm
+    L = L @ W
+    c_full = np.einsum("ij,ij->j", L, _full_compliance(asm, full, pts) @ L)
+    c_red = np.einsum("ij,ij->j", L, _socket_compliance(reduced, pts) @ L)
+    # The interface shapes lose at most tol/2 of a load's compliance and the contact segment's
+    # interior at most tol (energy norms), so the whole basis at most (sqrt(1/2) + 1)^2 tol.
+    tol = scene["solver"]["hsv_tolerance"]
+    assert np.max(1 - c_red / c_full) < (0.5**0.5 + 1) ** 2 * tol
+    assert np.all(c_red <= c_full * (1 + 1e-9))
+    assert reduced.part.orders[1] < models["reduced"].part.orders[1]
+
+
 def test_segmented_tends_to_the_full_model_as_the_coupling_stiffens(models, asm):
     full, seg = models["full"], models["segmented"]
     pts = np.arange(0, full.n_samples, 7)
@@ -399,6 +450,7 @@ def test_reduced_file_checks(built, tmp_path, monkeypatch):
         ({"solver.interface_stiffness": 0.0}, r"solver\.interface_stiffness = 0\.0: must be > 0"),
         ({"solver.interface_damping": -1.0}, r"solver\.interface_damping = -1\.0: must be >= 0"),
         ({"solver.segments": 1.5}, r"solver\.segments = 1\.5: must be an integer"),
+        ({"solver.load_patch": -0.1}, r"solver\.load_patch = -0\.1: must be >= 0"),
     ],
 )
 def test_bad_reduction_keys_name_the_key(change, match):

@@ -24,8 +24,10 @@ basis whose interior parts are balanced. The segments share their interface coor
 amplitudes of the interface shapes below), so the copies of a shared node move together for
 every ``z``: the segments are joined exactly, with no springs (stiff penalty springs make the
 float32 rollout of a fine mesh gain energy and blow up). The *contact load cases* are unit
-forces along the surface normal at every candidate point (both sides' normals at an edge);
-``tol = solver.hsv_tolerance``.
+forces along the surface normal at every candidate point (both sides' normals at an edge), or,
+with the internal key ``solver.load_patch`` > 0, each spread over the candidate points around
+it by a Gaussian of that standard deviation (:func:`_patch_weights`); ``tol =
+solver.hsv_tolerance``.
 
 * *Interface shapes*: the six rigid motions of the interface nodes, then the interface traces of
   the full model's static responses to the load cases, added greedily until restricting the
@@ -480,20 +482,58 @@ def _greedy_energy(
     return np.stack(added, axis=1) if added else np.zeros((X.shape[0], 0))
 
 
-def _normal_loads(Jn: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """(3c, Q) nodal loads of a unit force along each candidate point's surface normal(s).
+def _normal_loads(
+    Jn: np.ndarray, normals: np.ndarray, points: np.ndarray | None = None, patch: float = 0.0
+) -> np.ndarray:
+    """(3c, Q) nodal loads of a unit force along each candidate point's surface normal(s), or,
+    with ``patch > 0``, of a unit force spread over the points around it (:func:`_patch_weights`).
 
     Args:
         Jn: (P, c) interpolation of the points from the contact nodes.
         normals: (P, m, 3) normals per point (m = 2: its side's and, at an edge, the other
             side's); repeated normals add nothing and are dropped.
+        points: (P, 3) the points' rest positions, mm (needed with ``patch``).
+        patch: the patch's standard deviation, mm (``solver.load_patch``); 0: each point alone.
     """
     P, m = normals.shape[:2]
     L = np.einsum("pa,pjd->adpj", Jn, normals).reshape(3 * Jn.shape[1], P * m)
     distinct = np.ones((P, m), dtype=bool)
     for j in range(1, m):
         distinct[:, j] = np.linalg.norm(normals[:, j] - normals[:, 0], axis=1) > 1e-9
-    return L[:, distinct.ravel()]
+    L = L[:, distinct.ravel()]
+    if patch > 0:
+        at = np.repeat(np.asarray(points, dtype=np.float64)[:, None], m, axis=1)[distinct]
+        L = np.asarray((_patch_weights(at, normals[distinct], patch).T @ L.T).T)
+    return L
+
+
+# Load cases on faces whose normals differ by more than this angle (cosine) are not mixed by a
+# patch: the two sides of an edge of 90 degrees or sharper stay apart.
+_PATCH_SAME_SIDE = 0.5
+# The patch's Gaussian is cut at this many standard deviations.
+_PATCH_CUT = 4.0
+# What a patch is (part of the cache key of the models reduced at patch loads).
+_PATCH = f"Gaussian over the candidate points, cut at {_PATCH_CUT:g} sd, sides within cos {_PATCH_SAME_SIDE:g}"
+
+
+def _patch_weights(at: np.ndarray, normals: np.ndarray, patch: float) -> sp.csc_matrix:
+    """(Q, Q) sparse weights: column j spreads load case j (a unit normal force at ``at[j]``)
+    over the cases within ``_PATCH_CUT`` standard deviations ``patch`` of it on the same side
+    (normals within 60 degrees), Gaussian in the distance, summing to 1 (a unit total)."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(at)
+    D = tree.sparse_distance_matrix(tree, _PATCH_CUT * patch, output_type="coo_matrix")
+    i, j = D.row, D.col
+    keep = (np.einsum("qd,qd->q", normals[i], normals[j]) > _PATCH_SAME_SIDE) & (i != j)
+    i, j, d = i[keep], j[keep], D.data[keep]
+    # Every case's own weight (1) added here: whether the distance matrix holds the zero
+    # distances of a case to itself depends on the SciPy version.
+    n = at.shape[0]
+    i, j = np.concatenate([i, np.arange(n)]), np.concatenate([j, np.arange(n)])
+    w = np.concatenate([np.exp(-0.5 * (d / patch) ** 2), np.ones(n)])
+    W = sp.csc_matrix((w, (i, j)), shape=(n, n))
+    return W @ sp.diags(1.0 / np.asarray(W.sum(axis=0)).ravel())
 
 
 def interface_shapes(
@@ -851,7 +891,16 @@ def _to_part(arrays: dict, orders, method: str, kc: float, bc: float) -> Segment
 
 
 def reduce_bases(
-    asm, seg, blocks, material: tuple[float, float, float], sample, normals, tol: float, n_modes: int, say=None
+    asm,
+    seg,
+    blocks,
+    material: tuple[float, float, float],
+    sample,
+    normals,
+    tol: float,
+    n_modes: int,
+    say=None,
+    patch: float = 0.0,
 ):
     """Per-segment balanced bases (see the module docstring).
 
@@ -862,6 +911,9 @@ def reduce_bases(
         tol: ``solver.hsv_tolerance``.
         n_modes: lowest interior modes per segment in the balancing subspace.
         say: progress printer (long builds), or None.
+        patch: ``solver.load_patch``, mm: the contact load cases are unit forces spread over a
+            Gaussian patch of this standard deviation (:func:`_patch_weights`); 0: at each
+            candidate point alone.
 
     Returns:
         ``(bases, info)``: a :class:`SegmentBasis` per segment and a dict of sizes.
@@ -872,7 +924,8 @@ def reduce_bases(
     free = asm.free
     nodes, weights = sample
     cnodes, Jn = _contact_interp((free[0::3] // 3)[nodes], weights)
-    cases = _normal_loads(Jn, np.asarray(normals, dtype=np.float64).reshape(Jn.shape[0], -1, 3))
+    normals = np.asarray(normals, dtype=np.float64).reshape(Jn.shape[0], -1, 3)
+    cases = _normal_loads(Jn, normals, Jn @ asm.nodes[cnodes], patch)
     # Half the tolerance for the interface, half for the interiors: the static compliance lost by
     # the two adds up.
     t0 = time.perf_counter()
@@ -947,6 +1000,8 @@ def _settings(scene) -> dict:
         subspace_modes=s["subspace_modes"],
         segment_margin=s["segment_margin"],
         segments=s["segments"],
+        # Only when set, so that models reduced at point loads keep their cache keys.
+        **({"load_patch": s["load_patch"], "patch_weights": _PATCH} if s["load_patch"] else {}),
     )
 
 
@@ -983,7 +1038,16 @@ def _build(asm: Assembly, seed_faces, sample, stencil, normals, settings, progre
     say(f"jsnap: reducing {asm.free.size} dof: segments of {', '.join(str(3 * len(n)) for n in seg.nodes)} dof")
     material = (settings["youngs_modulus"], settings["poissons_ratio"], settings["density"])
     bases, info = reduce_bases(
-        asm, seg, blocks, material, sample, normals, settings["hsv_tolerance"], settings["subspace_modes"], say
+        asm,
+        seg,
+        blocks,
+        material,
+        sample,
+        normals,
+        settings["hsv_tolerance"],
+        settings["subspace_modes"],
+        say,
+        patch=settings.get("load_patch", 0.0),
     )
     Vs, orders = join_bases(bases, blocks, material)
     arrays = _part_arrays(asm, seg, blocks, reactions, Vs, sample, stencil, springs=False)

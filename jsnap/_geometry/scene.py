@@ -503,6 +503,13 @@ SCHEMA: dict[str, dict[str, Key]] = {
             int, 30, "", 1, internal=True, doc="reduced: lowest modes per segment balanced over"
         ),
         "segment_margin": _nonneg("mm", 1.0, "contact segment grown by this", internal=True),
+        "load_patch": _nonneg(
+            "mm",
+            0.0,
+            "reduced: the contact load cases spread over a Gaussian patch of this standard deviation "
+            "(0: each candidate point's own)",
+            internal=True,
+        ),
         "segments": Key(int, 1, "", 1, internal=True, doc="number of non-contact segments"),
         "interface_stiffness": _pos("N/mm", 1e6, "segmented: k_c joining the segments' copies", internal=True),
         "interface_damping": _nonneg("N s/mm", None, "segmented: b_c; default k_c dt / 2", internal=True),
