@@ -295,6 +295,30 @@ def _scale(d):
     return out
 
 
+def _load_patch(d):
+    orders = d["orders"]
+    meshes = [float(k.split()[1]) for k in orders]
+    coarse, fine = max(meshes), min(meshes)
+
+    def order(mesh, patch):
+        return orders[f"mesh {mesh:g} patch {patch:g}"]["orders"][1]
+
+    growth = ", ".join(f"{p:g} mm {order(coarse, p)} → {order(fine, p)}" for p in d["patches_mm"])
+    rise = "; ".join(
+        f"{mu}: "
+        + ", ".join(
+            f"{p} mm {100 * r['rmse_rise_of_full_peak']:.1f} %"
+            for p, r in c["rows"].items()
+            if p != "full_float64"
+        )
+        for mu, c in d["box_lid_1.2mm"].items()
+    )
+    return (
+        f"default hook's contact-segment order, {coarse:g} → {fine:g} mm mesh, by patch: {growth}; "
+        f"box lid (tilted) rise RMSE against its full model: {rise}"
+    )
+
+
 def _reduction_accuracy(d):
     parts = [
         f"{k}: {' + '.join(map(str, v['orders']))}, RMSE {100 * v['rmse_float64']:.2f} %"
@@ -545,6 +569,12 @@ BENCHMARKS = [
     ),
     Bench("reduction_speed", "segmented / reduced models: accuracy and step rate", True, _reduction_speed),
     Bench("scale", "large parts: reduced build time, peak memory, orders and step rate vs size", True, _scale),
+    Bench(
+        "load_patch",
+        "point or patch load cases in the reduction: order against the mesh, force against the full model",
+        False,
+        _load_patch,
+    ),
     Bench(
         "reduction_accuracy",
         "segmented / reduced against full: k_c, tolerance",
