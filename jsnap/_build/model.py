@@ -365,7 +365,9 @@ def build_model(scene: Scene, *, progress: bool = False) -> tuple[Model, BuildRe
             part, report.reduction = modal_part(asm, nu, sample, stencil, progress=progress)
             say(f"jsnap: modal part, {part.n_dof} modes")
         else:  # segments: the elements of the contact faces (+ margin) and the rest
-            part, report.reduction = build_part(asm, seeds, sample, stencil, normals, scene, progress=progress)
+            part, report.reduction = build_part(
+                asm, seeds, sample, stencil, normals, scene, progress=progress, points=np.asarray(samples.rest)
+            )
             say(f"jsnap: {s['method']} part, {' + '.join(map(str, part.orders))} coordinates")
 
         solver = _SOLVERS[ct["solver"]](

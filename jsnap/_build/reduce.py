@@ -901,6 +901,7 @@ def reduce_bases(
     n_modes: int,
     say=None,
     patch: float = 0.0,
+    points: np.ndarray | None = None,
 ):
     """Per-segment balanced bases (see the module docstring).
 
@@ -914,6 +915,9 @@ def reduce_bases(
         patch: ``solver.load_patch``, mm: the contact load cases are unit forces spread over a
             Gaussian patch of this standard deviation (:func:`_patch_weights`); 0: at each
             candidate point alone.
+        points: (P, 3) the candidate points' rest positions, mm: needed with ``patch`` (the
+            interpolation weights of clamped nodes are zero in ``sample``, so they do not place
+            the points on faces that touch the fixed region).
 
     Returns:
         ``(bases, info)``: a :class:`SegmentBasis` per segment and a dict of sizes.
@@ -925,7 +929,9 @@ def reduce_bases(
     nodes, weights = sample
     cnodes, Jn = _contact_interp((free[0::3] // 3)[nodes], weights)
     normals = np.asarray(normals, dtype=np.float64).reshape(Jn.shape[0], -1, 3)
-    cases = _normal_loads(Jn, normals, Jn @ asm.nodes[cnodes], patch)
+    if patch > 0 and points is None:
+        raise ValueError("reduce_bases: a load patch needs the candidate points' rest positions (points)")
+    cases = _normal_loads(Jn, normals, points, patch)
     # Half the tolerance for the interface, half for the interiors: the static compliance lost by
     # the two adds up.
     t0 = time.perf_counter()
@@ -965,16 +971,19 @@ def reduce_bases(
 # --------------------------------------------------------------------------------------------
 
 
-def cache_key(asm: Assembly, seed_faces, sample, stencil, normals, settings: dict) -> str:
+def cache_key(asm: Assembly, seed_faces, sample, stencil, normals, settings: dict, points=None) -> str:
     """SHA-256 of everything a reduced model depends on: mesh and element, fixed dofs, seed
     faces, the contact points' and stencils' nodes and weights, the points' normals and the
-    settings (material it was balanced at, tolerance, subspace modes, margin, segments)."""
+    settings (material it was balanced at, tolerance, subspace modes, margin, segments, and the
+    load patch with the points' positions where one is set)."""
     h = KeyHash("reduced").settings(
         dict(settings, element=asm.element, gramian_damping=GRAMIAN_DAMPING, joint=_JOINT, truncation=_TRUNCATION)
     )
     h.arrays(asm.mesh.points, asm.mesh.cells, asm.fixed, np.sort(np.sort(seed_faces, axis=1), axis=0))
     if asm.sliding.nnz:
         h.arrays(asm.sliding.indices, asm.sliding.indptr, asm.sliding.data)
+    if settings.get("load_patch"):
+        h.arrays(np.asarray(points, dtype=np.float64))
     return h.arrays(*sample, *stencil, np.asarray(normals, dtype=np.float64)).hexdigest()
 
 
@@ -1006,7 +1015,7 @@ def _settings(scene) -> dict:
 
 
 def load_or_build(
-    asm: Assembly, seed_faces, sample, stencil, normals, scene, *, progress: bool = False, rebuild=False
+    asm: Assembly, seed_faces, sample, stencil, normals, scene, *, progress: bool = False, rebuild=False, points=None
 ):
     """The reduced model's arrays for a scene, from the cache or built (and cached).
 
@@ -1018,18 +1027,18 @@ def load_or_build(
         (build time), the per-segment reduction details and the Hankel singular values.
     """
     settings = _settings(scene)
-    key = cache_key(asm, seed_faces, sample, stencil, normals, settings)
+    key = cache_key(asm, seed_faces, sample, stencil, normals, settings, points)
     return cached(
         "reduced",
         key,
-        lambda: _build(asm, seed_faces, sample, stencil, normals, settings, progress),
+        lambda: _build(asm, seed_faces, sample, stencil, normals, settings, progress, points),
         what="the reduced model",
         check=_check_arrays,
         fresh=rebuild,
     )
 
 
-def _build(asm: Assembly, seed_faces, sample, stencil, normals, settings, progress):
+def _build(asm: Assembly, seed_faces, sample, stencil, normals, settings, progress, points=None):
     """Segment and reduce (:func:`load_or_build`'s build): ``(arrays, meta)``."""
     say = print if progress else (lambda *a, **k: None)
     t0 = time.perf_counter()
@@ -1048,6 +1057,7 @@ def _build(asm: Assembly, seed_faces, sample, stencil, normals, settings, progre
         settings["subspace_modes"],
         say,
         patch=settings.get("load_patch", 0.0),
+        points=points,
     )
     Vs, orders = join_bases(bases, blocks, material)
     arrays = _part_arrays(asm, seg, blocks, reactions, Vs, sample, stencil, springs=False)
@@ -1077,7 +1087,9 @@ def _build(asm: Assembly, seed_faces, sample, stencil, normals, settings, progre
     return {k: v for k, v in arrays.items() if v is not None}, meta
 
 
-def build_part(asm: Assembly, seed_faces, sample, stencil, normals, scene, *, progress: bool = False):
+def build_part(
+    asm: Assembly, seed_faces, sample, stencil, normals, scene, *, progress: bool = False, points=None
+):
     """The part of a segmented or reduced scene (``solver.method``), and a dict describing it.
 
     Args:
@@ -1089,7 +1101,8 @@ def build_part(asm: Assembly, seed_faces, sample, stencil, normals, scene, *, pr
         normals: (P, 2, 3) outward normals of the section side each point lies on and (at an
             edge) of the other side: the contact load cases of the static correction.
         scene: the validated scene (``solver`` keys: method, hsv_tolerance, subspace_modes,
-            segment_margin, segments, interface_stiffness, interface_damping, dt).
+            segment_margin, segments, load_patch, interface_stiffness, interface_damping, dt).
+        points: (P, 3) the candidate points' rest positions, mm (used with ``solver.load_patch``).
     """
     s = scene["solver"]
     sample = tuple(np.asarray(a) for a in sample)
@@ -1103,7 +1116,9 @@ def build_part(asm: Assembly, seed_faces, sample, stencil, normals, scene, *, pr
         orders = [3 * len(n) for n in seg.nodes]
         info = dict(orders=orders, interface_pairs=len(seg.pairs))
     elif s["method"] == "reduced":
-        arrays, info = load_or_build(asm, seed_faces, sample, stencil, normals, scene, progress=progress)
+        arrays, info = load_or_build(
+            asm, seed_faces, sample, stencil, normals, scene, progress=progress, points=points
+        )
         orders = info["orders"]
     else:
         raise ValueError(
