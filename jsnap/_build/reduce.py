@@ -527,8 +527,8 @@ def _patch_weights(at: np.ndarray, normals: np.ndarray, patch: float) -> sp.csc_
     i, j = D.row, D.col
     keep = (np.einsum("qd,qd->q", normals[i], normals[j]) > _PATCH_SAME_SIDE) & (i != j)
     i, j, d = i[keep], j[keep], D.data[keep]
-    # Every case's own weight (1) added here: whether the distance matrix holds the zero
-    # distances of a case to itself depends on the SciPy version.
+    # Every case's own weight (1) added once, here: the distance matrix holds each case's zero
+    # distance to itself (cKDTree stores it explicitly), which would count it twice.
     n = at.shape[0]
     i, j = np.concatenate([i, np.arange(n)]), np.concatenate([j, np.arange(n)])
     w = np.concatenate([np.exp(-0.5 * (d / patch) ** 2), np.ones(n)])
