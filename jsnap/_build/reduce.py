@@ -79,6 +79,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import skfem
+from scipy.spatial import cKDTree
 
 from jsnap._build.cache import ArtefactError, KeyHash, cached
 from jsnap._build.fem import _ELEMENTS, Assembly, _k_lam, _k_mu, _m1, wrench_rows
@@ -520,8 +521,6 @@ def _patch_weights(at: np.ndarray, normals: np.ndarray, patch: float) -> sp.csc_
     """(Q, Q) sparse weights: column j spreads load case j (a unit normal force at ``at[j]``)
     over the cases within ``_PATCH_CUT`` standard deviations ``patch`` of it on the same side
     (normals within 60 degrees), Gaussian in the distance, summing to 1 (a unit total)."""
-    from scipy.spatial import cKDTree
-
     tree = cKDTree(at)
     D = tree.sparse_distance_matrix(tree, _PATCH_CUT * patch, output_type="coo_matrix")
     i, j = D.row, D.col
