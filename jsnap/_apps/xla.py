@@ -12,9 +12,9 @@ below any contact problem's. :func:`configure_xla_cpu` raises it to :data:`SMALL
 which holds the largest solver loop jsnap makes (the 64-slot float64 problem, ~0.3 MB) and no
 loop over a full mesh.
 
-Measured side by side in fresh processes (``benchmarks/xla_option.py``): the shipped scene's
-reduced model steps 1.6-1.7x faster with it; the results move by round-off only (float64 forces
-agree to 5e-8 of the peak).
+Measured side by side in fresh processes (``benchmarks/xla_option.py``): with both of its settings
+below, the shipped scene's reduced model steps 2.0x faster (1.8-2.3x round by round); the
+results move by round-off only (float64 forces agree to 6e-12 of the peak).
 
 The option belongs to the whole process: XLA reads ``XLA_FLAGS`` once, when JAX starts its CPU
 backend. So ``import jsnap`` does not set it; a program opts in by calling
@@ -132,10 +132,10 @@ def _backend_started() -> bool:
 
 def configure_xla_cpu() -> str:
     """Set XLA:CPU's two options for this process: the contact solvers' loops compiled into
-    single kernels instead of being run kernel by kernel (the reduced model's steps run 1.6-1.7x
-    faster, ``benchmarks/xla_option.py``), and XLA's own kernels for every operation instead of
-    library calls (1.2-1.4x faster again on the contact-heavy presets,
-    ``benchmarks/xla_kernels.py``).
+    single kernels instead of being run kernel by kernel, and XLA's own kernels for every
+    operation instead of library calls (1.2-1.4x faster on the contact-heavy presets,
+    ``benchmarks/xla_kernels.py``). Together they make the shipped scene's reduced model step
+    2.0x faster (``benchmarks/xla_option.py``).
 
     The options (``xla_cpu_small_while_loop_byte_threshold`` set to :data:`SMALL_LOOP_BYTES`,
     and :data:`LIBRARY_FLAG` set to an empty list where the installed jaxlib has it, through
@@ -156,7 +156,7 @@ def configure_xla_cpu() -> str:
     if _backend_started():
         warnings.warn(
             "jsnap.configure_xla_cpu() was called after JAX started its CPU backend, so XLA's "
-            "options cannot be set any more: contact-heavy steps run ~1.6x slower. Call it before "
+            "options cannot be set any more: the shipped scene's steps run ~2x slower. Call it before "
             f"the first JAX computation, or set XLA_FLAGS='{xla_cpu_flags('')}'.",
             stacklevel=2,
         )
