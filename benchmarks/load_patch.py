@@ -1,6 +1,6 @@
 """Point or patch load cases in the reduction: the reduced order and the insertion force when
 the static correction keeps the compliance of loads spread over a patch instead of each
-candidate point's own (the internal key ``solver.load_patch``, a Gaussian's standard
+candidate point's own (the scene key ``solver.load_patch``, a Gaussian's standard
 deviation in mm; 0, the default, is each point alone).
 
     python benchmarks/load_patch.py

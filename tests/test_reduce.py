@@ -262,9 +262,7 @@ def test_reduction_at_patch_loads_keeps_their_compliance(models, asm, scene, cac
     from the points' rest positions and both sides' normals) to the tolerance against the full
     model, never softer, with fewer coordinates than at point loads."""
     patch = 0.5
-    reduced = jsnap.build(
-        with_internal(scene.replace({"solver.method": "reduced"}), {"solver.load_patch": patch})
-    )
+    reduced = jsnap.build(scene.replace({"solver.method": "reduced", "solver.load_patch": patch}))
     full = models["full"]
     pts = np.arange(full.n_samples)
     st = np.asarray(full.samples.stencil)
@@ -454,7 +452,8 @@ def test_reduced_file_checks(built, tmp_path, monkeypatch):
     ],
 )
 def test_bad_reduction_keys_name_the_key(change, match):
-    # solver.hsv_tolerance is a scene key; the others are internal (tests and benchmarks).
+    # solver.hsv_tolerance and solver.load_patch are scene keys; the others are internal (tests
+    # and benchmarks).
     with pytest.raises(SceneError, match=match):
         with_internal(jsnap.load_scene(), change)
 

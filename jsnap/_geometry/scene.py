@@ -507,8 +507,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "mm",
             0.0,
             "reduced: the contact load cases spread over a Gaussian patch of this standard deviation "
-            "(0: each candidate point's own)",
-            internal=True,
+            "(0: each candidate point's own); a patch keeps the contact segment's order from growing "
+            "with the mesh, at some cost after snaps (docs/reduction.md)",
         ),
         "segments": Key(int, 1, "", 1, internal=True, doc="number of non-contact segments"),
         "interface_stiffness": _pos("N/mm", 1e6, "segmented: k_c joining the segments' copies", internal=True),
