@@ -12,9 +12,10 @@ below any contact problem's. :func:`configure_xla_cpu` raises it to :data:`SMALL
 which holds the largest solver loop jsnap makes (the 64-slot float64 problem, ~0.3 MB) and no
 loop over a full mesh.
 
-Measured side by side in fresh processes (``benchmarks/xla_option.py``): with both of its settings
-below, the shipped scene's reduced model steps 2.0x faster (1.8-2.3x round by round); the
-results move by round-off only (float64 forces agree to 6e-12 of the peak).
+Measured side by side in fresh processes (``benchmarks/xla_option.py``): with both of
+:func:`configure_xla_cpu`'s settings (this one and XLA's own kernels, below), the shipped
+scene's reduced model steps 2.0x faster (1.8-2.3x round by round); the results move by
+round-off only (float64 forces agree to 6e-12 of the peak).
 
 The option belongs to the whole process: XLA reads ``XLA_FLAGS`` once, when JAX starts its CPU
 backend. So ``import jsnap`` does not set it; a program opts in by calling
