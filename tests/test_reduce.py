@@ -175,9 +175,13 @@ def test_energy_conserved_without_damping_or_input(models, x64, method):
         x, v = x + op.dt * vbar, 2 * vbar - v
         return (x, v), s.energy(op, x, v)
 
-    _, e = jax.jit(lambda x: jax.lax.scan(body, (x, 0 * x), None, length=5_000))(x0)
+    steps = 5_000
+    _, e = jax.jit(lambda x: jax.lax.scan(body, (x, 0 * x), None, length=steps))(x0)
     e0 = s.energy(op, x0, 0 * x0)
-    assert float(jnp.max(jnp.abs(e - e0)) / e0) < 1e-8
+    # Round-off: a step's rounding changes the energy by ~eps times the stiffest term's share
+    # (the springs: ~1e4 times the arm's stiffness), and the change adds up linearly in the steps
+    # (jsnap._core.pmi). Twice that bound: ~2e-8 of the energy after 5000 steps.
+    assert float(jnp.max(jnp.abs(e - e0)) / e0) < 2 * 1e4 * np.finfo(np.float64).eps * steps
 
 
 def test_reduced_segments_are_joined_exactly(models, asm, scene):

@@ -113,15 +113,16 @@ class Factor:
         return x
 
 
-def factor(A: sp.spmatrix, what: str, hint: str) -> Factor:
+def factor(A: sp.spmatrix, what: str, hint: str, ordering: tuple[np.ndarray, int] | None = None) -> Factor:
     """:class:`Factor` of the node-major SPD matrix ``A``, refused (:class:`BuildError` naming
     ``hint``) before SuperLU allocates anything when its estimated memory would not fit.
 
     Args:
         what: what the matrix is, for the message.
         hint: the setting to change, for the message.
+        ordering: ``node_ordering(A)``, if made already.
     """
-    perm, nnz = node_ordering(A)
+    perm, nnz = node_ordering(A) if ordering is None else ordering
     require(factor_bytes(nnz, read_out=False), f"the sparse factor of {what} ({A.shape[0]} dof)", hint)
     return Factor(A, perm)
 

@@ -69,7 +69,9 @@ Units: mm, N, MPa, s, tonne.
 from __future__ import annotations
 
 import itertools
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import jax
@@ -80,11 +82,12 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import skfem
 from scipy.spatial import cKDTree
+from threadpoolctl import threadpool_limits
 
 from jsnap._build.cache import ArtefactError, KeyHash, cached
 from jsnap._build.fem import _ELEMENTS, Assembly, _k_lam, _k_mu, _m1, wrench_rows
-from jsnap._build.linalg import factor, schur_complement
-from jsnap._build.memory import require
+from jsnap._build.linalg import factor, factor_bytes, node_ordering, schur_complement
+from jsnap._build.memory import MEMORY_SHARE, available_memory, require
 from jsnap._core.params import lame
 from jsnap._core.parts import ReducedPart, SegmentedPart
 
@@ -248,18 +251,28 @@ def _own_sliding(asm: Assembly, seg: Segmentation, i: int) -> sp.csr_matrix:
 def segment_blocks(asm: Assembly, seg: Segmentation, i: int):
     """Parameter-free blocks of segment ``i`` from its own elements only.
 
+    They are the part's blocks on the segment's dofs less what the other segments' elements add
+    at the nodes it shares with them: only those elements that touch the segment's nodes (a
+    layer along the interface) are assembled, not the segment's own.
+
     Returns ``(blocks, reaction)``: ``blocks`` the (n_i, n_i) CSR matrices ``K_lam, K_mu, M1`` on
     the segment's local dofs, ``reaction`` the (n_fixed, n_i) rows of the same matrices at the
     clamped base dofs (``asm.fixed``), for the base wrench.
     """
-    elements = np.flatnonzero(seg.element_segment == i)
-    basis = skfem.Basis(asm.basis.mesh, skfem.ElementVector(_ELEMENTS[asm.element]()), elements=elements)
+    mine = np.zeros(asm.nodes.shape[0], dtype=bool)
+    mine[seg.nodes[i]] = True
+    layer = np.flatnonzero((seg.element_segment != i) & mine[asm.cells].any(axis=1))
+    basis = None
+    if layer.size:
+        basis = skfem.Basis(asm.basis.mesh, skfem.ElementVector(_ELEMENTS[asm.element]()), elements=layer)
     dofs = _dofs(seg.nodes[i])
     out, react = [], []
-    for form in (_k_lam, _k_mu, _m1):
-        A = form.assemble(basis).tocsr()
-        if form is _k_mu and asm.sliding.nnz:
-            A = A + _own_sliding(asm, seg, i)
+    for form, whole in ((_k_lam, asm.K_lam), (_k_mu, asm.K_mu), (_m1, asm.M1)):
+        A = whole.tocsr()
+        if basis is not None:
+            A = A - form.assemble(basis)
+        if form is _k_mu and asm.sliding.nnz:  # the part's K_mu holds every segment's springs
+            A = A - asm.sliding + _own_sliding(asm, seg, i)
         out.append(A[dofs][:, dofs].tocsr())
         react.append(A[asm.fixed][:, dofs].tocsr())
     return out, react
@@ -405,11 +418,11 @@ def _load_factor(Jn: np.ndarray) -> np.ndarray:
     return Q[:, keep] * np.sqrt(lam[keep])
 
 
-def _factor(K, what: str = "a segment's interior"):
+def _factor(K, ordering=None, what: str = "a segment's interior"):
     """Sparse factorisation of a symmetric positive definite node-major matrix (a fill-reducing
     ordering of its nodes, diagonal pivots: :func:`jsnap._build.linalg.factor`), its memory
-    checked before it is made."""
-    return factor(K, what, _MESH_HINT)
+    checked before it is made; ``ordering``: ``node_ordering(K)``, if made already."""
+    return factor(K, what, _MESH_HINT, ordering=ordering)
 
 
 def _unit_responses(lu, n: int, at: np.ndarray, chunk: int = 256) -> np.ndarray:
@@ -535,6 +548,19 @@ def _patch_weights(at: np.ndarray, normals: np.ndarray, patch: float) -> sp.csc_
     return W @ sp.diags(1.0 / np.asarray(W.sum(axis=0)).ravel())
 
 
+def _each_segment(work, need: list[int]) -> list:
+    """``[work(i) for i in range(len(need))]``, the segments on a thread per core when their
+    memory needs (bytes, ``need[i]`` for segment i) fit together: the sparse factorisations and
+    solves (SuperLU) run without Python's lock, and the segments are independent."""
+    n = len(need)
+    workers = min(n, os.cpu_count() or 1)
+    if workers < 2 or sum(need) > MEMORY_SHARE * available_memory():
+        return [work(i) for i in range(n)]
+    # One BLAS thread each: the workers already fill the cores.
+    with threadpool_limits(1), ThreadPoolExecutor(workers) as pool:
+        return list(pool.map(work, range(n)))
+
+
 def interface_shapes(
     asm: Assembly, seg: Segmentation, blocks, lame0, cnodes, cases, factor, tol: float, say=None
 ):
@@ -578,6 +604,8 @@ def interface_shapes(
     require(need, f"the condensed stiffness of the contact and interface dofs ({m} dof)", _MESH_HINT)
     lam0, mu0 = lame0
     S_W = np.zeros((m, m))
+    # One segment at a time: each factorisation is the build's largest allocation, and two at
+    # once raised the 118k-dof hook's peak from 5.4 to 8.7 GB (benchmarks/scale.py).
     for i in range(seg.n_segments):
         t0 = time.perf_counter()
         K = (lam0 * blocks[i][0] + mu0 * blocks[i][1]).tocsr()
@@ -639,6 +667,57 @@ class SegmentBasis:
     subspace: int
 
 
+@dataclass(frozen=True, eq=False)
+class SegmentInterior:
+    """A segment's interior blocks at the nominal material, split from its interface dofs ``g``,
+    and what :func:`segment_basis` will need to factor and reduce them.
+
+    Attributes:
+        K_II, K_IG, M_II, M_IG: interior-interior and interior-interface blocks.
+        g, inner: the segment's interface and interior local dofs.   n: its dofs.
+        inner_pos: (n,) position of each local dof among the interior's, -1 on the interface.
+        ordering: ``node_ordering(K_II)``: the factor's elimination order and nonzeros.
+        need: bytes at the peak of ``segment_basis``: the factor and the balancing subspace.
+    """
+
+    K_II: sp.csc_matrix
+    K_IG: sp.csr_matrix
+    M_II: sp.csc_matrix
+    M_IG: sp.csr_matrix
+    g: np.ndarray
+    inner: np.ndarray
+    inner_pos: np.ndarray
+    n: int
+    ordering: tuple[np.ndarray, int]
+    need: int
+
+
+def _subspace_bytes(n_inner: int, s_max: int) -> int:
+    """Bytes of a balancing subspace (n_inner x s_max) and the few copies of it that
+    orthonormalising and projecting make, and of the balancing's (s, s, 2, 2) complex Gramian
+    terms (position_gramians), a few at once."""
+    return 5 * 8 * n_inner * s_max + 4 * 64 * s_max**2
+
+
+def segment_interior(blocks, lam0, mu0, rho0, gamma_local, psi, contact, n_modes: int) -> SegmentInterior:
+    """:class:`SegmentInterior` of one segment (arguments as :func:`segment_basis`'s)."""
+    kl, km, m1 = blocks
+    K = (lam0 * kl + mu0 * km).tocsr()
+    M = (rho0 * m1).tocsr()
+    n = K.shape[0]
+    g = _dofs(gamma_local)
+    inner = np.setdiff1d(np.arange(n), g)
+    inner_pos = -np.ones(n, dtype=np.int64)
+    inner_pos[inner] = np.arange(inner.size)
+    K_II, K_IG = K[inner][:, inner].tocsc(), K[inner][:, g]
+    M_II, M_IG = M[inner][:, inner].tocsc(), M[inner][:, g]
+    ordering = node_ordering(K_II)
+    span = 3 * len(contact[0]) if contact is not None else psi.shape[1]
+    s_max = min(n_modes, inner.size) + span
+    need = factor_bytes(ordering[1], read_out=False) + _subspace_bytes(inner.size, s_max)
+    return SegmentInterior(K_II, K_IG, M_II, M_IG, g, inner, inner_pos, n, ordering, need)
+
+
 def segment_basis(
     blocks,
     lam0: float,
@@ -649,6 +728,7 @@ def segment_basis(
     contact: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
     tol: float,
     n_modes: int,
+    interior: SegmentInterior | None = None,
 ) -> SegmentBasis:
     """Balanced Craig-Bampton basis of one segment (see the module docstring).
 
@@ -664,18 +744,13 @@ def segment_basis(
         tol: relative Hankel singular value tolerance; the static correction keeps the compliance
             that the basis loses below ``tol`` times the full model's, for every case.
         n_modes: lowest interior modes in the balancing subspace.
+        interior: ``segment_interior`` of the same arguments, if made already.
     """
-    kl, km, m1 = blocks
-    K = (lam0 * kl + mu0 * km).tocsr()
-    M = (rho0 * m1).tocsr()
-    n = K.shape[0]
-    g = _dofs(gamma_local)
-    inner = np.setdiff1d(np.arange(n), g)
-    inner_pos = -np.ones(n, dtype=np.int64)
-    inner_pos[inner] = np.arange(inner.size)
-    K_II, K_IG = K[inner][:, inner].tocsc(), K[inner][:, g]
-    M_II, M_IG = M[inner][:, inner].tocsc(), M[inner][:, g]
-    lu = _factor(K_II)
+    it = interior or segment_interior(blocks, lam0, mu0, rho0, gamma_local, psi, contact, n_modes)
+    K_II, K_IG, M_II, M_IG, g, inner, inner_pos, n = (
+        it.K_II, it.K_IG, it.M_II, it.M_IG, it.g, it.inner, it.inner_pos, it.n
+    )
+    lu = _factor(K_II, it.ordering)
     C_I = -lu.solve(np.asarray(K_IG @ psi)) if psi.shape[1] else np.zeros((inner.size, 0))
     if contact is not None:
         rows, factor, cases, compliance, gain = contact
@@ -691,7 +766,7 @@ def segment_basis(
     # The subspace (n x s) and the few copies of it that orthonormalising and projecting make;
     # the balancing's (s, s, 2, 2) complex Gramian terms (position_gramians), a few at once.
     s_max = min(n_modes, inner.size) + span
-    need = 5 * 8 * inner.size * s_max + 4 * 64 * s_max**2
+    need = _subspace_bytes(inner.size, s_max)
     require(need, f"the balancing subspace ({inner.size} x {s_max})", _MESH_HINT)
     if contact is not None:
         X = _unit_responses(lu, inner.size, at)  # K_II^-1 of a unit force on each contact dof
@@ -940,7 +1015,8 @@ def reduce_bases(
     )
     say(f"jsnap:   {psi.shape[1]} interface shapes on {len(gamma)} nodes in {time.perf_counter() - t0:.1f} s")
     psi = psi.reshape(len(gamma), 3, -1)
-    bases = []
+
+    args = []
     for i in range(seg.n_segments):
         gl = seg.interface_nodes(i)
         # The shapes as they are on this segment's interface nodes (where a segment touches
@@ -949,13 +1025,20 @@ def reduce_bases(
         contact = None
         if i == 0:
             contact = (np.searchsorted(seg.nodes[0], cnodes), factor, cases, compliance, gain)
+        args.append((blocks[i], lam0, mu0, rho, gl, psi_i, contact))
+    interiors = [segment_interior(*a, n_modes) for a in args]
+
+    def basis(i):
         t0 = time.perf_counter()
-        bases.append(segment_basis(blocks[i], lam0, mu0, rho, gl, psi_i, contact, tol, n_modes))
-        b = bases[-1]
+        b = segment_basis(*args[i], tol, n_modes, interior=interiors[i])
         say(
             f"jsnap:   segment {i}: {b.V.shape[1]} coordinates (subspace {b.subspace}, "
             f"{b.n_balanced} balanced, {b.n_static} static) in {time.perf_counter() - t0:.1f} s"
         )
+        return b
+
+    bases = _each_segment(basis, [it.need for it in interiors])
+    del interiors
     info = dict(
         interface_nodes=len(gamma),
         interface_shapes=int(psi.shape[2]),
