@@ -25,7 +25,7 @@ amplitudes of the interface shapes below), so the copies of a shared node move t
 every ``z``: the segments are joined exactly, with no springs (stiff penalty springs make the
 float32 rollout of a fine mesh gain energy and blow up). The *contact load cases* are unit
 forces along the surface normal at every candidate point (both sides' normals at an edge), or,
-with the internal key ``solver.load_patch`` > 0, each spread over the candidate points around
+with the scene key ``solver.load_patch`` > 0, each spread over the candidate points around
 it by a Gaussian of that standard deviation (:func:`_patch_weights`); ``tol =
 solver.hsv_tolerance``.
 
@@ -55,6 +55,11 @@ solver.hsv_tolerance``.
 
 Together: the normal compliance at every candidate point is within ``tol`` of the full model's,
 which tests/test_reduce.py checks.
+
+Cost. The segments' interiors are reduced at once, a thread each (SuperLU's factorisations and
+solves run without Python's lock), when the memory their factors and subspaces are estimated to
+need fits together; the condensations onto the contact and interface dofs run one after the
+other, since each is the build's largest allocation.
 
 ``V`` is computed once at the scene's material and held fixed: the stored blocks are
 parameter-free (``V'K_lam V``, ``V'K_mu V``, ``V'M1 V``, base-reaction rows), so E, nu,
