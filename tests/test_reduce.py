@@ -211,6 +211,41 @@ def test_reduced_segments_are_joined_exactly(models, asm, scene):
     assert np.abs(off).max() <= 1e-9 * np.abs(K).max()
 
 
+def test_segments_reduced_at_once_or_in_turn_give_the_same_model(models, asm, scene, monkeypatch):
+    """The segments' bases are computed a thread each when their memory fits together, else one
+    after the other: the same reduced model either way (its modes at the nominal material), and
+    the threads are used only when the memory allows."""
+    full = models["full"]
+    seg = R.segment(asm, _seeds(asm, full), scene["solver"]["segment_margin"], 2)
+    blocks = [R.segment_blocks(asm, seg, i)[0] for i in range(seg.n_segments)]
+    m = scene["material"]
+    material = (m["youngs_modulus"], m["poissons_ratio"], m["density"])
+    s = full.part
+    nodes, w = np.asarray(s.sample_nodes), np.asarray(s.sample_weights)
+    normals = np.repeat(_normals(full, np.arange(full.n_samples))[:, None], 2, axis=1)
+    pools = []
+
+    class Pool(R.ThreadPoolExecutor):
+        def __init__(self, workers):
+            pools.append(workers)
+            super().__init__(workers)
+
+    monkeypatch.setattr(R, "ThreadPoolExecutor", Pool)
+    monkeypatch.setattr(R.os, "cpu_count", lambda: 2)
+    modes = []
+    for memory in (None, 0):  # this machine's, then none to spare for two at once
+        if memory is not None:
+            monkeypatch.setattr(R, "available_memory", lambda: memory)
+        bases, _ = R.reduce_bases(asm, seg, blocks, material, (nodes, w), normals, 1e-2, 30)
+        Vs, orders = R.join_bases(bases, blocks, material)
+        lam, mu = lame(*material[:2])
+        K = sum(V.T @ ((lam * b[0] + mu * b[1]) @ V) for V, b in zip(Vs, blocks, strict=True))
+        modes.append((orders, np.sort(np.diag(K))))
+    assert pools == [2]  # threads for the first build only
+    assert modes[0][0] == modes[1][0]
+    np.testing.assert_allclose(modes[0][1], modes[1][1], rtol=1e-8)  # round-off: BLAS threads differ
+
+
 def test_reduced_damping_only_removes_energy(models, x64):
     red = models["reduced"]
     s = red.part
