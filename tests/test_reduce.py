@@ -184,10 +184,9 @@ def test_energy_conserved_without_damping_or_input(models, x64, method):
     assert float(jnp.max(jnp.abs(e - e0)) / e0) < 2 * 1e4 * np.finfo(np.float64).eps * steps
 
 
-def test_reduced_segments_are_joined_exactly(models, asm, scene):
-    """Every segment's copy of a shared node moves as the others for every reduced coordinate:
-    the joined basis has no gap to close (no springs), and it is mass-orthonormal with a
-    diagonal stiffness at the nominal material (the reduced model's own modes)."""
+def _three_segments(models, asm, scene):
+    """The small part cut into a contact segment and two others: ``(seg, blocks, material,
+    (sample, normals))``, what ``reduce_bases`` takes."""
     full = models["full"]
     seg = R.segment(asm, _seeds(asm, full), scene["solver"]["segment_margin"], 2)
     blocks = [R.segment_blocks(asm, seg, i)[0] for i in range(seg.n_segments)]
@@ -196,7 +195,15 @@ def test_reduced_segments_are_joined_exactly(models, asm, scene):
     s = full.part
     nodes, w = np.asarray(s.sample_nodes), np.asarray(s.sample_weights)
     normals = np.repeat(_normals(full, np.arange(full.n_samples))[:, None], 2, axis=1)
-    bases, _ = R.reduce_bases(asm, seg, blocks, material, (nodes, w), normals, 1e-2, 30)
+    return seg, blocks, material, ((nodes, w), normals)
+
+
+def test_reduced_segments_are_joined_exactly(models, asm, scene):
+    """Every segment's copy of a shared node moves as the others for every reduced coordinate:
+    the joined basis has no gap to close (no springs), and it is mass-orthonormal with a
+    diagonal stiffness at the nominal material (the reduced model's own modes)."""
+    seg, blocks, material, inputs = _three_segments(models, asm, scene)
+    bases, _ = R.reduce_bases(asm, seg, blocks, material, *inputs, 1e-2, 30)
     Vs, orders = R.join_bases(bases, blocks, material)
     assert sum(orders) == Vs[0].shape[1] and orders[0] >= 6  # at least the interface's rigid motions
     scale = max(np.abs(V).max() for V in Vs)
@@ -215,14 +222,7 @@ def test_segments_reduced_at_once_or_in_turn_give_the_same_model(models, asm, sc
     """The segments' bases are computed a thread each when their memory fits together, else one
     after the other: the same reduced model either way (its modes at the nominal material), and
     the threads are used only when the memory allows."""
-    full = models["full"]
-    seg = R.segment(asm, _seeds(asm, full), scene["solver"]["segment_margin"], 2)
-    blocks = [R.segment_blocks(asm, seg, i)[0] for i in range(seg.n_segments)]
-    m = scene["material"]
-    material = (m["youngs_modulus"], m["poissons_ratio"], m["density"])
-    s = full.part
-    nodes, w = np.asarray(s.sample_nodes), np.asarray(s.sample_weights)
-    normals = np.repeat(_normals(full, np.arange(full.n_samples))[:, None], 2, axis=1)
+    seg, blocks, material, inputs = _three_segments(models, asm, scene)
     pools = []
 
     class Pool(R.ThreadPoolExecutor):
@@ -236,7 +236,7 @@ def test_segments_reduced_at_once_or_in_turn_give_the_same_model(models, asm, sc
     for memory in (None, 0):  # this machine's, then none to spare for two at once
         if memory is not None:
             monkeypatch.setattr(R, "available_memory", lambda: memory)
-        bases, _ = R.reduce_bases(asm, seg, blocks, material, (nodes, w), normals, 1e-2, 30)
+        bases, _ = R.reduce_bases(asm, seg, blocks, material, *inputs, 1e-2, 30)
         Vs, orders = R.join_bases(bases, blocks, material)
         lam, mu = lame(*material[:2])
         K = sum(V.T @ ((lam * b[0] + mu * b[1]) @ V) for V, b in zip(Vs, blocks, strict=True))
