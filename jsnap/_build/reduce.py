@@ -610,7 +610,7 @@ def interface_shapes(
     lam0, mu0 = lame0
     S_W = np.zeros((m, m))
     # One segment at a time: each factorisation is the build's largest allocation, and two at
-    # once raised the 118k-dof hook's peak from 5.4 to 8.7 GB (benchmarks/scale.py).
+    # once raised the 118k-dof hook's build peak from 5.3 to 8.7 GB.
     for i in range(seg.n_segments):
         t0 = time.perf_counter()
         K = (lam0 * blocks[i][0] + mu0 * blocks[i][1]).tocsr()
