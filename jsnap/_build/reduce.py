@@ -682,6 +682,7 @@ class SegmentInterior:
         g, inner: the segment's interface and interior local dofs.   n: its dofs.
         inner_pos: (n,) position of each local dof among the interior's, -1 on the interface.
         ordering: ``node_ordering(K_II)``: the factor's elimination order and nonzeros.
+        s_max: the balancing subspace's largest width (lowest modes plus the segment's inputs).
         need: bytes at the peak of ``segment_basis``: the factor and the balancing subspace.
     """
 
@@ -694,6 +695,7 @@ class SegmentInterior:
     inner_pos: np.ndarray
     n: int
     ordering: tuple[np.ndarray, int]
+    s_max: int
     need: int
 
 
@@ -720,7 +722,7 @@ def segment_interior(blocks, lam0, mu0, rho0, gamma_local, psi, contact, n_modes
     span = 3 * len(contact[0]) if contact is not None else psi.shape[1]
     s_max = min(n_modes, inner.size) + span
     need = factor_bytes(ordering[1], read_out=False) + _subspace_bytes(inner.size, s_max)
-    return SegmentInterior(K_II, K_IG, M_II, M_IG, g, inner, inner_pos, n, ordering, need)
+    return SegmentInterior(K_II, K_IG, M_II, M_IG, g, inner, inner_pos, n, ordering, s_max, need)
 
 
 def segment_basis(
@@ -764,15 +766,9 @@ def segment_basis(
             raise RuntimeError("segment: a contact node lies on the segment interface (raise the margin)")
         B = np.zeros((inner.size, 3 * factor.shape[1]))
         B[at] = _kron3(factor)  # the contact forces' covariance factor on the contact dofs
-        span = at.size
     else:  # the interface shapes' accelerations load the interior through the mass
         B = np.asarray(M_II @ C_I + M_IG @ psi)
-        span = B.shape[1]
-    # The subspace (n x s) and the few copies of it that orthonormalising and projecting make;
-    # the balancing's (s, s, 2, 2) complex Gramian terms (position_gramians), a few at once.
-    s_max = min(n_modes, inner.size) + span
-    need = _subspace_bytes(inner.size, s_max)
-    require(need, f"the balancing subspace ({inner.size} x {s_max})", _MESH_HINT)
+    require(_subspace_bytes(inner.size, it.s_max), f"the balancing subspace ({inner.size} x {it.s_max})", _MESH_HINT)
     if contact is not None:
         X = _unit_responses(lu, inner.size, at)  # K_II^-1 of a unit force on each contact dof
     else:
@@ -1032,18 +1028,19 @@ def reduce_bases(
             contact = (np.searchsorted(seg.nodes[0], cnodes), factor, cases, compliance, gain)
         args.append((blocks[i], lam0, mu0, rho, gl, psi_i, contact))
     interiors = [segment_interior(*a, n_modes) for a in args]
+    need = [it.need for it in interiors]
 
     def basis(i):
         t0 = time.perf_counter()
-        b = segment_basis(*args[i], tol, n_modes, interior=interiors[i])
+        it, interiors[i] = interiors[i], None  # freed once used: held no longer than before
+        b = segment_basis(*args[i], tol, n_modes, interior=it)
         say(
             f"jsnap:   segment {i}: {b.V.shape[1]} coordinates (subspace {b.subspace}, "
             f"{b.n_balanced} balanced, {b.n_static} static) in {time.perf_counter() - t0:.1f} s"
         )
         return b
 
-    bases = _each_segment(basis, [it.need for it in interiors])
-    del interiors
+    bases = _each_segment(basis, need)
     info = dict(
         interface_nodes=len(gamma),
         interface_shapes=int(psi.shape[2]),
