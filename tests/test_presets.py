@@ -299,7 +299,7 @@ def test_latch_lip_face_pushes_along_its_normal_or_on_the_coulomb_cone(latch_run
         if abs(f[0]) < 0.5:
             continue
         checked += 1
-        assert abs(f[2]) == pytest.approx(mu * abs(f[0]), abs=0.01 * abs(f[0])), (k, f)
+        assert abs(f[2]) == pytest.approx(mu * abs(f[0]), abs=0.01 * float(abs(f[0]))), (k, f)
     assert checked >= 5
 
 
