@@ -9,6 +9,7 @@ Running the scripts is tested by ``tests/test_bench.py::test_quick_benchmarks_ru
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import jsnap
@@ -139,6 +140,21 @@ def test_scale_headline():
     h = d["headline"]
     assert h["largest_full_dof"] == sizes[-1]
     assert set(h["targets_met"]) == {"build_seconds", "peak_rss_gb", "steps_per_second"}
+    # The same meshes with patch loads: the order no larger than the point loads' on every
+    # mesh, and each curve compared with the point-load curve recorded beside it.
+    point = {r["mesh_size"]: r for r in rows}
+    patched = [r for r in d["rows"] if r["part"] == "default_hook_patch"]
+    assert {r["mesh_size"] for r in patched} == set(point)
+    for r in patched:
+        p = point[r["mesh_size"]]
+        assert r["full_dof"] == p["full_dof"] and r["orders"][1] <= p["orders"][1]
+        cmp = r["against_point_loads"]
+        a, b = (np.asarray(x[cmp["dtype"]]["insertion_force_N"]) for x in (r, p))
+        assert cmp["peak_ratio"] == pytest.approx(a.max() / b.max())
+        assert cmp["rmse_of_peak"] == pytest.approx(np.sqrt(np.mean((a - b) ** 2)) / b.max())
+    lp = h["load_patch"]
+    assert lp["largest_full_dof"] == sizes[-1]
+    assert set(lp["targets_met"]) == set(h["targets_met"])
     g = h["design_guide_hook"]
     assert g["peak_N"] > 0 and g["peak_over_guide"] == pytest.approx(g["peak_N"] / g["design_guide_N"])
     assert "steps/s" in _bench._scale(d)

@@ -286,6 +286,14 @@ def _scale(d):
         f"{h['largest_build_seconds']:.0f} s, peak {h['largest_build_peak_rss_gb']:.1f} GB, "
         f"{h['largest_scan_steps_per_second']:.0f} steps/s ({h['largest_quoted_dtype']})"
     )
+    lp = h.get("load_patch")
+    if lp:
+        out += (
+            f"; with load_patch {lp['patch_mm']:g} mm: {sum(lp['largest_orders'])} coordinates, "
+            f"{lp['largest_build_seconds']:.0f} s, {lp['largest_build_peak_rss_gb']:.1f} GB, "
+            f"{lp['largest_scan_steps_per_second']:.0f} steps/s ({lp['largest_quoted_dtype']}), peak "
+            f"{100 * (lp['largest_against_point_loads']['peak_ratio'] - 1):+.1f} % of the point loads'"
+        )
     g = h.get("design_guide_hook")
     if g:
         out += (
