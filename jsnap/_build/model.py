@@ -10,7 +10,7 @@ its memory and refuses with a message naming the setting to change. Units: mm, N
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
@@ -81,7 +81,6 @@ class BuildReport:
         reduction: the modal/reduced artefact's metadata (cache path, whether it was read from
             the cache, orders, build time), or None.
         sdf: the neural SDF's training/cache information, or None.
-        notes: remarks made while building.
     """
 
     seconds: float = 0.0
@@ -90,7 +89,6 @@ class BuildReport:
     contact_points: int = 0
     reduction: dict | None = None
     sdf: dict | None = None
-    notes: list[str] = field(default_factory=list)
 
 
 def params_from_scene(scene: Scene) -> Params:
