@@ -189,7 +189,7 @@ def _plot(rows, path, machine, quick):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(1, 4, figsize=(19, 4.6))
+    fig, ax = plt.subplots(1, 4, figsize=(19, 6.4))
     for part, marker in (("default_hook", "o-"), ("default_hook_patch", "^--"), ("design_guide_hook", "s")):
         sel = sorted((r for r in rows if r["part"] == part), key=lambda r: r["full_dof"])
         if not sel:
@@ -225,7 +225,8 @@ def _plot(rows, path, machine, quick):
         if target is not None:
             a.axhline(target, color="k", ls="--", lw=0.8, label="target")
         a.grid(True, which="both", alpha=0.3)
-        a.legend(fontsize=7)
+        # Below the panel: six or seven curves' legend inside it would cover them.
+        a.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16))
     fig.suptitle(f"jsnap: reduced models of large parts{' (quick)' if quick else ''}. {machine}", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
