@@ -301,3 +301,49 @@ def test_jvp_of_a_rollout_has_the_rollout_as_its_primal(released, x64):
     F0 = np.asarray(plain.insertion_force)
     assert np.abs(np.asarray(F) - F0).max() <= 1e-9 * np.abs(F0).max()
     assert np.all(np.isfinite(np.asarray(dF)))
+
+
+def test_cli_widens_a_default_contact_buffer_that_overflowed(tmp_path, capsys):
+    """A hook 16 mm wide has more points in contact than the default 64 slots hold (up to 89
+    over). ``jsnap simulate`` runs it again with a buffer that holds them, and its forces are
+    those of a model built with that capacity; a capacity the scene sets is kept, its overflow
+    an error."""
+    from jsnap._apps.simulate import _wider_buffer
+    from jsnap._build.model import with_capacity
+
+    text = open(jsnap.load_scene().source).read()
+    edits = {"width = 4.0": "width = 16.0", "mesh_size = 0.8": "mesh_size = 2.0", "speed = 10.0": "speed = 40"}
+    for old, new in edits.items():
+        assert old in text
+        text = text.replace(old, new)
+    path = tmp_path / "wide.toml"
+    path.write_text(text)
+    with pytest.warns(jsnap.SceneWarning):
+        scene = jsnap.load_scene(path)
+    assert not scene.is_set("contact.capacity") and scene.is_set("connector.width")
+    model = jsnap.build(scene)
+    res = jsnap.rollout(model)
+    assert model.contact.capacity == 64 and int(np.asarray(res.overflow).max()) > 0 and not res.ok
+    most = int(np.asarray(res.overflow).max())
+    assert most > 64  # twice the slots would not do: the next power of two over 64 + most
+    assert _wider_buffer(scene, model, res) == 256
+    assert _wider_buffer(scene.replace({"contact.capacity": 64}), model, res) is None  # the user's choice
+    wide = jsnap.rollout(with_capacity(model, 256))
+    assert wide.ok and int(np.asarray(wide.overflow).max()) == 0
+
+    with pytest.warns(jsnap.SceneWarning):
+        code = cli_main(["simulate", str(path), "--out", str(tmp_path / "out"), "--json"])
+    summary = json.loads(capsys.readouterr().out)
+    assert code == 0 and summary["status"] == "ok"
+    assert summary["contact_capacity"] == 256 and summary["contact_capacity_widened_from"] == 64
+    assert any("contact.capacity = 256" in w for w in summary["warnings"])
+    csv = np.loadtxt(tmp_path / "out" / "forces.csv", delimiter=",", skiprows=1)
+    np.testing.assert_allclose(csv[:, 2], np.asarray(wide.insertion_force), rtol=1e-6, atol=1e-6)
+
+    # The same capacity set in the scene: not widened, and the CLI exits with the error.
+    path.write_text(text.replace("[contact]", "[contact]\ncapacity = 64"))
+    with pytest.warns(jsnap.SceneWarning):
+        code = cli_main(["simulate", str(path), "--out", str(tmp_path / "out64"), "--json"])
+    summary = json.loads(capsys.readouterr().out)
+    assert code == 1 and summary["contact_capacity_widened_from"] is None
+    assert "contact.capacity" in summary["status"]

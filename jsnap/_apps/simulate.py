@@ -14,6 +14,8 @@ Outputs in the ``--out`` folder (checked before anything is built):
 
 Timings are apart: ``build_seconds`` (mesh, assembly, reduction, the parameter-dependent
 operator), ``compile_seconds`` (XLA), and ``steps_per_second`` of the compiled rollout alone.
+A run whose contact buffer was left at its default size (``contact.capacity``) and dropped
+candidates is run again with a buffer that holds them (a warning says which capacity to set).
 A run whose result carries an error flag (non-finite values, energy created, dropped contacts,
 invalid parameters) writes its outputs, says what happened at which step, and exits with 1.
 """
@@ -288,11 +290,25 @@ def _say(quiet: bool, message: str) -> None:
         print(message, file=sys.stderr, flush=True)
 
 
+def _wider_buffer(scene, model, res) -> int | None:
+    """The contact buffer to run again with, or None: where a step dropped candidates and the
+    scene left ``contact.capacity`` at its default, the power of two that holds the most
+    candidates a step had, and at least twice the slots (at most the candidate points). The
+    default is sized for one narrow hook; a wide or many-hooked part can need more, and the
+    buffer's size is fixed before compiling (as JAX-MD's neighbour lists, rebuilt larger when
+    they overflow). A capacity the scene sets is kept: its overflow is reported as an error."""
+    capacity = model.contact.capacity
+    most = int(np.max(np.asarray(res.overflow), initial=0))
+    if scene.is_set("contact.capacity") or capacity >= model.n_samples or most <= 0:
+        return None
+    return min(max(2 * capacity, 1 << (capacity + most - 1).bit_length()), model.n_samples)
+
+
 def simulate(args) -> int:
     """The ``simulate`` command (see the module docstring); returns the exit code."""
     import jax
 
-    from jsnap._build.model import build_model
+    from jsnap._build.model import build_model, with_capacity
     from jsnap._core.rollout import _check_controls, _whole
     from jsnap._core.step import prepare
     from jsnap._geometry.scene import load_scene
@@ -312,14 +328,27 @@ def simulate(args) -> int:
         start = jax.numpy.asarray(model.plug_start, dtype)
         t_build = time.perf_counter() - t0
         _say(quiet, f"jsnap: built in {t_build:.1f} s; compiling the rollout ({model.n_steps} steps) ...")
-        t1 = time.perf_counter()
-        compiled = _whole.lower(model, prepared, controls, start, True).compile()
-        t_compile = time.perf_counter() - t1
-        _say(quiet, f"jsnap: compiled in {t_compile:.1f} s; running ...")
-        t2 = time.perf_counter()
-        res = compiled(model, prepared, controls, start, True)
-        jax.block_until_ready(res.energy)
-        t_run = time.perf_counter() - t2
+        widened_from = None
+        while True:
+            t1 = time.perf_counter()
+            compiled = _whole.lower(model, prepared, controls, start, True).compile()
+            t_compile = time.perf_counter() - t1
+            _say(quiet, f"jsnap: compiled in {t_compile:.1f} s; running ...")
+            t2 = time.perf_counter()
+            res = compiled(model, prepared, controls, start, True)
+            jax.block_until_ready(res.energy)
+            t_run = time.perf_counter() - t2
+            wider = _wider_buffer(scene, model, res)
+            if wider is None:
+                break
+            dropped = int(np.count_nonzero(np.asarray(res.overflow)))
+            _say(
+                quiet,
+                f"jsnap: {dropped} steps had more contact candidates than the {model.contact.capacity} "
+                f"slots of the default contact.capacity; running again with {wider} slots ...",
+            )
+            widened_from = widened_from or model.contact.capacity
+            model = with_capacity(model, wider)
     status = res.status()
     F = np.asarray(res.insertion_force)
     base = np.asarray(res.base_force)
@@ -332,6 +361,12 @@ def simulate(args) -> int:
     pvd, peaks = write_series(model, res, out, arm_box(scene["connector"]))
     t_strain = time.perf_counter() - t3
     warnings = []
+    if widened_from is not None:
+        warnings.append(
+            f"the default contact.capacity ({widened_from} slots) dropped contact candidates, so the rollout "
+            f"was run again with {model.contact.capacity}; set contact.capacity = {model.contact.capacity} in "
+            "the scene to skip the first run"
+        )
     residual = np.asarray(res.residual)
     loose = residual > 100 * scene["contact"]["tolerance"]
     if loose.any():
@@ -377,6 +412,9 @@ def simulate(args) -> int:
         "design_guide_strain": design_guide_strain(scene),
         "strain_seconds": t_strain,
         "max_contact_overflow": int(np.max(np.asarray(res.overflow))),
+        "contact_capacity": model.contact.capacity,
+        # The default capacity the first run overflowed (None: the run was not repeated).
+        "contact_capacity_widened_from": widened_from,
         "max_solver_residual": _finite(np.nanmax(residual)) if np.isfinite(residual).any() else None,
         "outputs": {"csv": str(csv), "png": str(png), "pvd": str(pvd)},
         "warnings": warnings,

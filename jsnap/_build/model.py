@@ -9,6 +9,7 @@ its memory and refuses with a message naming the setting to change. Units: mm, N
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -50,6 +51,7 @@ from jsnap._geometry.scene import (
 
 __all__ = [
     "BuildError", "BuildReport", "available_memory", "build", "build_model", "check_memory", "params_from_scene",
+    "with_capacity",
 ]  # fmt: skip
 
 _SOLVERS = {"apgd": APGD, "spg": SPG, "admm": ADMM, "pgs": PGS}
@@ -418,3 +420,15 @@ def build(scene: Scene, *, progress: bool = False) -> Model:
             (the message names the setting to change).
     """
     return build_model(scene, progress=progress)[0]
+
+
+def with_capacity(model: Model, capacity: int) -> Model:
+    """The same model with ``capacity`` contact buffer slots (at most its candidate points).
+
+    Only the contact buffer changes: the part's model, its prepared operator and the states of
+    a rollout stay valid. The buffer's size is static, so a rollout compiles anew.
+    """
+    if int(capacity) < 1:
+        raise ValueError(f"contact capacity must be at least 1 slot, got {capacity}")
+    settings = dataclasses.replace(model.contact, capacity=min(int(capacity), model.n_samples))
+    return dataclasses.replace(model, contact=settings)

@@ -570,10 +570,13 @@ class Scene:
     Attributes:
         sections: read-only mapping ``section -> key -> value`` with every default filled in.
         source: where the scene came from (a path, or ``"<dict>"``).
+        given: the ``"section.key"`` names that the file (or mapping) and later ``replace``
+            calls set, as against the defaults filled in (see :meth:`is_set`).
     """
 
     sections: Mapping[str, Mapping[str, Any]]
     source: str = field(default="<dict>", compare=False)
+    given: frozenset[str] = field(default=frozenset(), compare=False)
 
     def __getitem__(self, section: str) -> Mapping[str, Any]:
         return self.sections[section]
@@ -582,6 +585,13 @@ class Scene:
         """Value of ``"section.key"``."""
         section, key = _split(dotted)
         return self.sections[section][key]
+
+    def is_set(self, dotted: str) -> bool:
+        """Whether ``"section.key"`` was given (by the scene's file or mapping, or by
+        :meth:`replace`) rather than left at its default; an application may size what the user
+        left to it (``jsnap simulate`` widens a default contact buffer that overflowed)."""
+        _split(dotted)
+        return dotted in self.given
 
     def replace(self, changes: Mapping[str, Any] | None = None, **kw: Any) -> Scene:
         """A new, re-validated scene with ``{"section.key": value}`` changes applied.
@@ -599,7 +609,7 @@ class Scene:
             if section not in raw:
                 raise SceneError(f"unknown section [{section}] in {dotted!r}")
             raw[section][key] = value
-        return Scene._validate(raw, self.source, internal=internal, given=set(changes))
+        return Scene._validate(raw, self.source, internal=internal, given=set(changes), before=self.given)
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
         """Plain nested dict (defaults included), e.g. for JSON summaries."""
@@ -611,9 +621,10 @@ class Scene:
         return cls._validate(raw, source, internal=False, given=None)
 
     @classmethod
-    def _validate(cls, raw, source, *, internal: bool, given) -> Scene:
+    def _validate(cls, raw, source, *, internal: bool, given, before: frozenset[str] = frozenset()) -> Scene:
         """``given``: the dotted keys set by the caller (None: every key present in ``raw``);
-        internal keys among them are refused unless ``internal``."""
+        internal keys among them are refused unless ``internal``. ``before``: the keys an
+        earlier scene had set, kept in the new one's ``given``."""
         if not isinstance(raw, Mapping):
             raise SceneError(f"a scene must be a table of sections, got {type(raw).__name__}")
         for section in raw:
@@ -650,7 +661,9 @@ class Scene:
                 else:
                     values[key] = spec.default
             sections[section] = MappingProxyType(values)
-        scene = cls(MappingProxyType(sections), source)
+        if given is None:
+            given = {f"{s}.{k}" for s, table in raw.items() if isinstance(table, Mapping) for k in table}
+        scene = cls(MappingProxyType(sections), source, frozenset(before | set(given)))
         _check_consistency(scene)
         return scene
 
