@@ -366,7 +366,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "",
             1,
             doc="contact buffer slots: the most points in contact in one step (at most the number of "
-            "candidate points is used)",
+            "candidate points is used); left at its default, jsnap simulate runs a rollout that dropped "
+            "candidates again with a buffer that holds them",
         ),
         "stabilisation": Key(
             float,
