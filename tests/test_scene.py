@@ -3,6 +3,7 @@ internal keys are set through ``with_internal`` only."""
 
 import json
 import re
+import tomllib
 import warnings
 
 import pytest
@@ -112,3 +113,20 @@ def test_unknown_and_missing_keys(tmp_path):
     p.write_text("[materail]\nE = 1\n")
     with pytest.raises(SceneError, match=r"unknown section \[materail\]"):
         jsnap.load_scene(p)
+
+
+def test_is_set_tells_the_keys_given_from_the_defaults():
+    """``Scene.is_set``: the keys of the file, and those of every later ``replace``, are set;
+    a default filled in is not, even though the scene holds its value."""
+    s = jsnap.load_scene()
+    assert s.is_set("connector.length") and s.is_set("contact.friction")
+    assert not s.is_set("contact.capacity") and s.get("contact.capacity") == 64
+    r = s.replace({"contact.capacity": 64}).replace(solver__dt=5e-4)
+    assert r.is_set("contact.capacity") and r.is_set("solver.dt") and r.is_set("connector.length")
+    assert not r.is_set("contact.margin")
+    raw = tomllib.loads(open(s.source).read())
+    raw["contact"] = {"friction": 0.5}
+    d = jsnap.Scene.from_dict(raw)
+    assert d.is_set("contact.friction") and not d.is_set("contact.tolerance")
+    with pytest.raises(SceneError, match=r"'section\.key'"):
+        s.is_set("capacity")
