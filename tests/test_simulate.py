@@ -52,6 +52,17 @@ def test_passive_with_contact(cycle):
     assert E[-1] < 0.02 * E.max()
 
 
+def test_frictionless_contact_conserves_energy_up_to_the_peak(cycle):
+    """Frictionless and undamped, the contact can only store what the plug puts in: up to the
+    peak (sliding, no impact) the energy equals the plug's work, not just stays below it."""
+    _, _, res = cycle
+    F = np.asarray(res.insertion_force)
+    k = int(F.argmax())
+    E, W = np.asarray(res.energy)[: k + 1], np.cumsum(np.asarray(res.work))[: k + 1]
+    assert W[-1] > 0.3  # the hook was bent (N mm)
+    assert np.abs(E - W).max() < 1e-3 * W[-1]
+
+
 def test_base_wrench_balances_contact(cycle):
     """Quasi-static: the base reaction balances the contact force (the arm's inertia is tiny)."""
     _, _, res = cycle
