@@ -31,7 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["OutputError", "check_out_dir", "design_guide_force", "design_guide_strain", "simulate"]
+__all__ = [
+    "OutputError", "check_out_dir", "design_guide_force", "design_guide_strain", "run_sizing_buffer", "simulate",
+]  # fmt: skip
 
 
 class OutputError(ValueError):
@@ -304,11 +306,35 @@ def _wider_buffer(scene, model, res) -> int | None:
     return min(max(2 * capacity, 1 << (capacity + most - 1).bit_length()), model.n_samples)
 
 
+def run_sizing_buffer(scene, model, run, say=None):
+    """``run(model)`` (a rollout that returns its :class:`jsnap.Result`), run again with the
+    :func:`_wider_buffer` while it asks for one; ``say(message)`` is told of each rerun.
+
+    Returns ``(model, result, widened_from)``: the model of the last run, its result, and the
+    default capacity the first run overflowed (None: it was not repeated)."""
+    from jsnap._build.model import with_capacity
+
+    widened_from = None
+    while True:
+        res = run(model)
+        wider = _wider_buffer(scene, model, res)
+        if wider is None:
+            return model, res, widened_from
+        if say is not None:
+            say(
+                f"jsnap: {int(np.count_nonzero(np.asarray(res.overflow)))} steps had more contact candidates "
+                f"than the {model.contact.capacity} slots of the default contact.capacity; running again "
+                f"with {wider} slots ..."
+            )
+        widened_from = widened_from or model.contact.capacity
+        model = with_capacity(model, wider)
+
+
 def simulate(args) -> int:
     """The ``simulate`` command (see the module docstring); returns the exit code."""
     import jax
 
-    from jsnap._build.model import build_model, with_capacity
+    from jsnap._build.model import build_model
     from jsnap._core.rollout import _check_controls, _whole
     from jsnap._core.step import prepare
     from jsnap._geometry.scene import load_scene
@@ -328,27 +354,21 @@ def simulate(args) -> int:
         start = jax.numpy.asarray(model.plug_start, dtype)
         t_build = time.perf_counter() - t0
         _say(quiet, f"jsnap: built in {t_build:.1f} s; compiling the rollout ({model.n_steps} steps) ...")
-        widened_from = None
-        while True:
+        times = {}
+
+        def run(model):
             t1 = time.perf_counter()
             compiled = _whole.lower(model, prepared, controls, start, True).compile()
-            t_compile = time.perf_counter() - t1
-            _say(quiet, f"jsnap: compiled in {t_compile:.1f} s; running ...")
+            times["compile"] = time.perf_counter() - t1
+            _say(quiet, f"jsnap: compiled in {times['compile']:.1f} s; running ...")
             t2 = time.perf_counter()
             res = compiled(model, prepared, controls, start, True)
             jax.block_until_ready(res.energy)
-            t_run = time.perf_counter() - t2
-            wider = _wider_buffer(scene, model, res)
-            if wider is None:
-                break
-            dropped = int(np.count_nonzero(np.asarray(res.overflow)))
-            _say(
-                quiet,
-                f"jsnap: {dropped} steps had more contact candidates than the {model.contact.capacity} "
-                f"slots of the default contact.capacity; running again with {wider} slots ...",
-            )
-            widened_from = widened_from or model.contact.capacity
-            model = with_capacity(model, wider)
+            times["run"] = time.perf_counter() - t2
+            return res
+
+        model, res, widened_from = run_sizing_buffer(scene, model, run, lambda m: _say(quiet, m))
+        t_compile, t_run = times["compile"], times["run"]
     status = res.status()
     F = np.asarray(res.insertion_force)
     base = np.asarray(res.base_force)
