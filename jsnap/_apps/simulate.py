@@ -32,7 +32,8 @@ from pathlib import Path
 import numpy as np
 
 __all__ = [
-    "OutputError", "check_out_dir", "design_guide_force", "design_guide_strain", "run_sizing_buffer", "simulate",
+    "OutputError", "check_out_dir", "design_guide_force", "design_guide_strain", "run_sizing_buffer",
+    "simulate",
 ]  # fmt: skip
 
 
