@@ -27,6 +27,7 @@ from jsnap._build.samples import (
     STENCIL_WIDTH,
     locate_on_faces,
     reachable_faces,
+    line_reach,
     section_samples,
     turned_samples,
     surface_samples,
@@ -297,13 +298,17 @@ def _contact_candidates(scene: Scene, g: _Geometry, asm: Assembly):
     sample = to_free(nodes, weights)
     st = to_free(st_nodes.reshape(*stencil.shape[:2], -1), st_weights.reshape(*stencil.shape[:2], -1))
     seeds = np.concatenate([faces[owner], st_faces[st_owner]])
+    line, reach = line_reach(X, group, order)
     samples = Samples(
         rest=jnp.asarray(X),
         stencil=jnp.asarray(stencil),
         corner=jnp.asarray(corner),
         group=jnp.asarray(group, jnp.int32),
         order=jnp.asarray(order, jnp.int32),
+        line=jnp.asarray(line),
+        reach=jnp.asarray(reach),
         n_groups=int(group.max()) + 1,
+        spacing=float(ct["spacing"]),
     )
     return samples, sample, st, seeds, normals
 

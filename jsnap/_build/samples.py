@@ -398,6 +398,7 @@ def surface_samples(mesh: TetMesh, lo, hi, direction, spacing: float, width_spac
                     room = (vk - v_lo) if sign < 0 else (v_hi - vk)
                     step = _on_patch_step(P2, us[j], vk, (0.0, sign), room, STENCIL_WIDTH, tol * scale)
                     own.append(p + sign * step * v)
+                own = _sound(own, tri[members[_triangle_at(P2, us[j], vk, tol * scale)]], n)
                 other, n_other, corner = own, n, False
                 if j in ends:
                     face, edge = _boundary_edge_at(P2, members, ends[j], neighbour, label, us[j], vk, 4 * tol)
@@ -427,6 +428,7 @@ def surface_samples(mesh: TetMesh, lo, hi, direction, spacing: float, width_spac
                                     mid = np.clip(np.dot(p - a, e), half, length - half)
                                     along = [a + (mid - half) * e, a + (mid + half) * e]
                                 other, n_other, corner = [*side, *along], n2, True
+                                other = _sound(other, tri[nb], n2)
                 X.append(p)
                 N.append((n, n_other))
                 C.append(corner)
@@ -449,6 +451,50 @@ def surface_samples(mesh: TetMesh, lo, hi, direction, spacing: float, width_spac
     keep = keep[np.all((X[keep] >= lo) & (X[keep] <= hi), axis=1)]
     _, G = np.unique(G[keep], return_inverse=True)
     return X[keep], N[keep], C[keep], S[keep], G, O[keep]
+
+
+def line_reach(X: np.ndarray, group: np.ndarray, order: np.ndarray):
+    """Each point's line of samples: its unit direction (P, 3), from the line's first point
+    (lowest ``order``) to its last (zero for a line of one point), and the distances (P, 2)
+    along it from the point back to the first and on to the last, mm. A line runs across its
+    face from edge to edge (the box [lo, hi] may cut it short), so these say how far the face
+    extends from a point along the rigid part's motion."""
+    G = int(group.max()) + 1 if group.size else 0
+    first = np.full(G, -1)
+    last = np.full(G, -1)
+    for i in np.argsort(order, kind="stable"):
+        g = group[i]
+        if first[g] < 0:
+            first[g] = i
+        last[g] = i
+    d = X[last[group]] - X[first[group]]
+    length = np.linalg.norm(d, axis=1)
+    u = np.where(length[:, None] > 0, d / np.maximum(length, 1e-300)[:, None], 0.0)
+    back = np.einsum("pi,pi->p", X - X[first[group]], u)
+    return u, np.stack([back, length - back], axis=1)
+
+
+def _triangle_at(P2, u: float, v: float, tol: float) -> int:
+    """Index into the patch's triangles ``P2`` (T, 3, 2) of one that holds (u, v) (the first)."""
+    q = np.array([[u, v]])
+    return next((t for t in range(P2.shape[0]) if _inside(P2[t : t + 1], q, tol)[0]), 0)
+
+
+def _sound(stencil, triangle, n):
+    """``stencil`` (4 points) if its normal ``cross(s3 - s2, s1 - s0)`` is ``n``'s, else one on
+    the mesh ``triangle`` (3, 3) it lies on, oriented to ``n``.
+
+    A line that meets its patch only at a vertex (a curved surface's facets are patches of one
+    triangle each, and a line may just touch one) has arms of zero length along it: no normal
+    at all, which at a corner would hand the contact the other face's normal."""
+    m = np.cross(stencil[3] - stencil[2], stencil[1] - stencil[0])
+    size = np.linalg.norm(m)
+    if size > 1e-3 * STENCIL_SIDE * STENCIL_WIDTH and np.dot(m, n) > (1 - 1e-6) * size:
+        return stencil
+    a, b, c = triangle
+    if np.dot(np.cross(c - a, b - a), n) < 0:
+        b, c = c, b
+    return [a, b, a, c]
 
 
 def _boundary_edge_at(P2, members, found, neighbour, label, u: float, v: float, tol: float):

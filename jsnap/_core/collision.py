@@ -49,19 +49,42 @@ def frames(n):
     return jnp.stack([n, t1, t2], axis=-1)
 
 
-def contact_normal(stencil, n_plug, corner):
+# Tilt between the rigid part's normal and a face's below which the two are one, rad (1 degree).
+_FLAT_TILT = 0.01745
+
+
+def contact_normal(stencil, n_plug, corner, points, line, reach, spacing: float, rigid_normal_at):
     """(C, 3) contact normals, pointing into the deformable part.
 
-    On a face touched by a rigid-part feature (a fillet), the normal is the part's own
-    deformed face normal: the rigid part's SDF normal at a sample point beside the true contact
-    line would be off by the fillet's arc (spacing / (2 r) rad). At a convex edge (a corner of
-    the section) the normal is the rigid part's, projected into the cone between the two
-    adjacent faces' normals: outside that cone the true contact lies on the adjacent face.
+    At a convex edge (a corner of the section) the normal is the rigid part's, projected into
+    the cone between the two adjacent faces' normals: outside that cone the true contact lies
+    on the adjacent face, whose normal it takes.
+
+    On a face the normal is the face's own (deformed) normal where the rigid part's point
+    deepest along it (its tangency with the face's plane) lies on the face: a fillet or an edge
+    of the rigid part pressing the face, whose SDF normal at a sample beside the true contact
+    line is off by the fillet's arc (spacing / r rad), so that a force along it would push the
+    part along the face like friction. Where that point lies beyond the face's end, the rigid
+    part touches the face's edge, for which the sample beside it stands in, and the normal is
+    the rigid part's (a large pin spreading a clip's mouth: the face normal there would push
+    across a gap, taking energy out of a frictionless contact). Where the tangency lies is read
+    from how the rigid part's normal turns over one ``spacing`` along the face from the point
+    toward it (a second SDF query): at a tilt ``a`` that turns by ``da`` it lies ``spacing a /
+    da`` away; a rigid surface that does not turn toward the face has none. Both are taken along
+    the sample's line (the rigid part's motion in the face, sampled every ``spacing``), and the
+    face's extent is the line's, ``reach`` back and on. Across the lines (sampled every
+    ``contact.width_spacing``, too coarse to place a tangency) the face normal is kept.
 
     Args:
         stencil: (C, 8, 3) deformed normal stencils (see :class:`Samples`).
         n_plug: (C, 3) the rigid part's SDF normals at the points (outward of it).
         corner: (C,) bool, point on a convex edge.
+        points: (C, 3) the points, mm.
+        line: (C, 3) unit direction of each point's line of samples (rest).
+        reach: (C, 2) distances along it from the point back to the line's first point and on
+            to its last, mm.
+        spacing: the sampling's spacing along its lines, mm.
+        rigid_normal_at: (C, 3) points -> (C, 3) the rigid part's SDF normals there.
     """
 
     def side_normal(s):
@@ -73,6 +96,20 @@ def contact_normal(stencil, n_plug, corner):
     inside = (jnp.sum(jnp.cross(n1, n_plug) * axis, -1) >= 0) & (jnp.sum(jnp.cross(n_plug, n2) * axis, -1) >= 0)
     nearest = jnp.where((jnp.sum(n1 * n_plug, -1) >= jnp.sum(n2 * n_plug, -1))[:, None], n1, n2)
     at_edge = jnp.where(inside[:, None], n_plug, nearest)
+    # Along the point's line (in the deformed face) the rigid part's normal tilts by `tilt`
+    # (rad) to the side `side`; the tangency lies the other way, where the tilt would be 0.
+    ell = line - jnp.sum(line * n1, -1, keepdims=True) * n1
+    ell = ell / jnp.maximum(safe_norm(ell), jnp.finfo(ell.dtype).tiny)[:, None]
+    lean = jnp.sum(n_plug * ell, -1)
+    side = jnp.where(lean >= 0, 1.0, -1.0).astype(lean.dtype)
+    tilt = jnp.arcsin(jnp.minimum(jnp.abs(lean), 1.0))
+    probe = rigid_normal_at(points - (spacing * side)[:, None] * ell)
+    turn = tilt - jnp.arcsin(jnp.clip(side * jnp.sum(probe * ell, -1), -1.0, 1.0))
+    # The room the face has that way (a spacing more: a side's last point may be the next
+    # side's corner, kept on that side's line). The tangency lies spacing * tilt / turn away.
+    room = jnp.where(side < 0, reach[:, 1], reach[:, 0]) + spacing
+    beyond = (tilt > _FLAT_TILT) & (room * jnp.maximum(turn, 0.0) < spacing * tilt)
     # A face point whose face normal opposes the rigid part's (deep inside it) is pushed out its way.
-    on_face = jnp.where((jnp.sum(n1 * n_plug, -1) > 0)[:, None], n1, n_plug)
-    return jnp.where(corner[:, None], at_edge, on_face)
+    deep = jnp.sum(n1 * n_plug, -1) <= 0
+    normal = jnp.where(corner[:, None], at_edge, jnp.where(deep[:, None], n_plug, n1))
+    return normal, corner | deep | ~beyond

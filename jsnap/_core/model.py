@@ -40,6 +40,11 @@ class Samples(eqx.Module):
         group: (P,) int, one group per line of points (a section side at one width position);
             order: (P,) int, the point's place along its line.
         n_groups: number of lines (static).
+        line: (P, 3) unit direction of each point's line (rest), from its first point to its
+            last (zero for a line of one point).
+        reach: (P, 2) rest distances along it from the point back to its line's first point
+            and on to its last, mm.
+        spacing: distance between neighbouring points along a line, mm (static).
     """
 
     rest: jax.Array
@@ -47,7 +52,10 @@ class Samples(eqx.Module):
     corner: jax.Array
     group: jax.Array
     order: jax.Array
+    line: jax.Array
+    reach: jax.Array
     n_groups: int = eqx.field(static=True)
+    spacing: float = eqx.field(static=True)
 
 
 class ContactSettings(eqx.Module):

@@ -277,7 +277,17 @@ def _contact_problem(
     n_plug = frame.world(n_plug)
     active = keep[idx]
     stencil = model.samples.stencil[idx] + part.stencil_disp(state.x, idx)
-    R = frames(contact_normal(stencil, n_plug, model.samples.corner[idx]))
+    spacing = model.samples.spacing
+
+    def rigid_normal_at(points):
+        return frame.world(model.rigid.scene_query(frame.local(points), settings.margin + spacing)[1])
+
+    smp = model.samples
+    normal, carries = contact_normal(
+        stencil, n_plug, smp.corner[idx], y[idx], smp.line[idx], smp.reach[idx], spacing, rigid_normal_at
+    )
+    active = active & carries
+    R = frames(normal)
     shift = jnp.asarray(settings.compliance / T, dtype)
     u_free = part.point_velocity(vbar_free, idx) - vp_free - frame.spin(y[idx])
     # A gap closes within the step; a penetration (the linearised gap drifts inward where a
