@@ -56,7 +56,8 @@ def _classify(rigid, x, face, c):
     normal_at = rigid(c)
     n_plug = normal_at(p)
     corner = jnp.zeros(p.shape[0], bool)
-    n, carries = contact_normal(stencil, n_plug, corner, p, line, reach, SPACING, normal_at)
+    phi = jnp.full(p.shape[0], 1e-3)  # outside the rigid part
+    n, carries = contact_normal(stencil, phi, n_plug, corner, p, line, reach, SPACING, normal_at)
     return n, carries, n_plug
 
 
@@ -97,10 +98,22 @@ def test_a_face_point_beside_an_edge_a_large_rigid_part_presses_carries_no_conta
     np.testing.assert_allclose(n, [[0, 0, -1]] * 2, atol=1e-6)
 
 
-@pytest.mark.parametrize("tilt,carries", [(0.5, True), (5.0, False), (30.0, False)])
+def test_a_small_fillet_rolling_over_the_faces_edge_leaves_the_face_its_normal():
+    """A fillet of radius 0.1 mm rolling over the face's edge x = 0 (its normal there tilted
+    30 degrees): its tangency lies beyond the edge, but its normal turns 11 degrees per
+    spacing, so the gap beside the edge opens fast; the face points keep the face's normal."""
+    t = np.radians(30.0)
+    c = (0.1 * np.sin(t), 0.1 * np.cos(t) + 1e-4)
+    n, carries, _ = classify([-SPACING, -2 * SPACING], (-2.0, 0.0), cylinder, c)
+    assert carries.all()
+    np.testing.assert_allclose(n, [[0, 0, -1]] * 2, atol=1e-6)
+
+
+@pytest.mark.parametrize("tilt,carries", [(0.5, True), (5.0, True), (30.0, False)])
 def test_a_flat_rigid_face_tilted_to_the_face_meets_its_edge(tilt, carries):
     """A flat rigid face (a half-space) tilted by beta about y touches the part's face only at
-    its edge: a face point carries no contact, unless the two are parallel within 1 degree."""
+    its edge: a face point carries no contact, unless the two are within 10 degrees of
+    parallel (the gap beside the edge is then at most a sixth of the distance to it)."""
     _, c, _ = classify([-0.5, 0.0, 0.5], (-1.0, 1.0), half_space, [np.radians(tilt)])
     assert (c == carries).all()
 
@@ -117,8 +130,8 @@ def test_an_edge_point_takes_the_rigid_normal_within_its_cone():
     a = np.radians([40.0, 100.0, -10.0])  # from -z toward -x
     n_plug = jnp.asarray(np.stack([-np.sin(a), 0 * a, -np.cos(a)], 1))
     n, carries = contact_normal(
-        jnp.asarray(stencil), n_plug, jnp.ones(3, bool), jnp.asarray(p), jnp.zeros((3, 3)), jnp.zeros((3, 2)),
-        SPACING, lambda q: n_plug,
+        jnp.asarray(stencil), jnp.zeros(3), n_plug, jnp.ones(3, bool), jnp.asarray(p), jnp.zeros((3, 3)),
+        jnp.zeros((3, 2)), SPACING, lambda q: n_plug,
     )  # fmt: skip
     assert np.asarray(carries).all()
     np.testing.assert_allclose(np.asarray(n), [np.asarray(n_plug[0]), [-1, 0, 0], [0, 0, -1]], atol=1e-6)

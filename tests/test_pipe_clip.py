@@ -22,7 +22,8 @@ SCENE = Path(__file__).parent / "data" / "pipe_clip" / "scene.toml"
 
 
 def _frictionless(dt):
-    scene = jsnap.load_scene(SCENE).replace({"contact.friction": 0.0, "solver.dtype": "float64", "solver.dt": dt})
+    frictionless = {"contact.friction": 0.0, "solver.dtype": "float64", "solver.dt": dt}
+    scene = jsnap.load_scene(SCENE).replace(frictionless)
     res = jsnap.rollout(jsnap.build(scene))
     assert res.ok, res.status()
     F = np.asarray(res.insertion_force)

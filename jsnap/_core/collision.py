@@ -3,8 +3,9 @@
 Points sampled on the deformable part's surface (interpolated from its nodes) are put in the
 rigid part's frame and queried against its signed distance; along each line of points the
 deepest and the two ends within the margin fill the contact buffer (:func:`manifold`); the
-normal is the deformed surface's (or, at an edge, the rigid part's within the edge's cone,
-:func:`contact_normal`). Units: mm.
+normal is the deformed surface's (or, at an edge, the rigid part's within the edge's cone), and
+a face point beside an edge the rigid part presses leaves that contact to the edge's points
+(:func:`contact_normal`). Units: mm.
 """
 
 from __future__ import annotations
@@ -49,12 +50,18 @@ def frames(n):
     return jnp.stack([n, t1, t2], axis=-1)
 
 
-# Tilt between the rigid part's normal and a face's below which the two are one, rad (1 degree).
-_FLAT_TILT = 0.01745
+# A face point leaves its contact to an edge only where the rigid part's normal is tilted from
+# the face's by more than _EDGE_TILT (rad, 10 degrees) and turns by at most _EDGE_TURN (rad,
+# 5 degrees) over one spacing along the line: there the face's normal would hold the point
+# across a gap that opens slowly. Nearly parallel faces, and small fillets (radius under about
+# 11 spacings, whose gap opens fast), keep the face's normal.
+_EDGE_TILT = 0.1745
+_EDGE_TURN = 0.0873
 
 
-def contact_normal(stencil, n_plug, corner, points, line, reach, spacing: float, rigid_normal_at):
-    """(C, 3) contact normals, pointing into the deformable part.
+def contact_normal(stencil, phi, n_plug, corner, points, line, reach, spacing: float, rigid_normal_at):
+    """``(normal, carries)``: (C, 3) contact normals, pointing into the deformable part, and
+    (C,) whether each point carries a contact.
 
     At a convex edge (a corner of the section) the normal is the rigid part's, projected into
     the cone between the two adjacent faces' normals: outside that cone the true contact lies
@@ -65,18 +72,21 @@ def contact_normal(stencil, n_plug, corner, points, line, reach, spacing: float,
     of the rigid part pressing the face, whose SDF normal at a sample beside the true contact
     line is off by the fillet's arc (spacing / r rad), so that a force along it would push the
     part along the face like friction. Where that point lies beyond the face's end, the rigid
-    part touches the face's edge, for which the sample beside it stands in, and the normal is
-    the rigid part's (a large pin spreading a clip's mouth: the face normal there would push
-    across a gap, taking energy out of a frictionless contact). Where the tangency lies is read
-    from how the rigid part's normal turns over one ``spacing`` along the face from the point
-    toward it (a second SDF query): at a tilt ``a`` that turns by ``da`` it lies ``spacing a /
-    da`` away; a rigid surface that does not turn toward the face has none. Both are taken along
+    part touches the face's edge, and the face point carries no contact: the edge's corner
+    points do (a large pin spreading a clip's mouth: the face normal at a point beside the edge
+    would hold it across a gap, taking energy out of a frictionless contact). A point the rigid
+    part has entered keeps its face's normal and its contact, wherever the tangency. Where the
+    tangency lies is read from how the rigid part's normal turns over one ``spacing`` along
+    the face from the point toward it (a second SDF query): at a tilt ``a`` that turns by
+    ``da`` it lies ``spacing a / da`` away; a rigid surface that does not turn toward the face
+    has none. Both are taken along
     the sample's line (the rigid part's motion in the face, sampled every ``spacing``), and the
     face's extent is the line's, ``reach`` back and on. Across the lines (sampled every
     ``contact.width_spacing``, too coarse to place a tangency) the face normal is kept.
 
     Args:
         stencil: (C, 8, 3) deformed normal stencils (see :class:`Samples`).
+        phi: (C,) the rigid part's signed distance at the points, mm.
         n_plug: (C, 3) the rigid part's SDF normals at the points (outward of it).
         corner: (C,) bool, point on a convex edge.
         points: (C, 3) the points, mm.
@@ -108,8 +118,9 @@ def contact_normal(stencil, n_plug, corner, points, line, reach, spacing: float,
     # The room the face has that way (a spacing more: a side's last point may be the next
     # side's corner, kept on that side's line). The tangency lies spacing * tilt / turn away.
     room = jnp.where(side < 0, reach[:, 1], reach[:, 0]) + spacing
-    beyond = (tilt > _FLAT_TILT) & (room * jnp.maximum(turn, 0.0) < spacing * tilt)
+    beyond = (tilt > _EDGE_TILT) & (turn <= _EDGE_TURN) & (room * jnp.maximum(turn, 0.0) < spacing * tilt)
     # A face point whose face normal opposes the rigid part's (deep inside it) is pushed out its way.
     deep = jnp.sum(n1 * n_plug, -1) <= 0
     normal = jnp.where(corner[:, None], at_edge, jnp.where(deep[:, None], n_plug, n1))
-    return normal, corner | deep | ~beyond
+    # A point inside the rigid part is touched by it, wherever the tangency: it keeps its face.
+    return normal, corner | deep | ~beyond | (phi <= 0)

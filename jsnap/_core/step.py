@@ -284,7 +284,7 @@ def _contact_problem(
 
     smp = model.samples
     normal, carries = contact_normal(
-        stencil, n_plug, smp.corner[idx], y[idx], smp.line[idx], smp.reach[idx], spacing, rigid_normal_at
+        stencil, phi, n_plug, smp.corner[idx], y[idx], smp.line[idx], smp.reach[idx], spacing, rigid_normal_at
     )
     active = active & carries
     R = frames(normal)
