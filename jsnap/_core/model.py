@@ -45,6 +45,9 @@ class Samples(eqx.Module):
         reach: (P, 2) rest distances along it from the point back to its line's first point
             and on to its last, mm.
         spacing: distance between neighbouring points along a line, mm (static).
+        hand_over: a face point beside an edge that the rigid part presses leaves its contact
+            to the edge (static; the general surface sampling; see
+            :func:`jsnap._core.collision.contact_normal`).
     """
 
     rest: jax.Array
@@ -56,6 +59,7 @@ class Samples(eqx.Module):
     reach: jax.Array
     n_groups: int = eqx.field(static=True)
     spacing: float = eqx.field(static=True)
+    hand_over: bool = eqx.field(static=True, default=False)
 
 
 class ContactSettings(eqx.Module):

@@ -284,8 +284,9 @@ def _contact_problem(
 
     smp = model.samples
     normal, carries = contact_normal(
-        stencil, phi, n_plug, smp.corner[idx], y[idx], smp.line[idx], smp.reach[idx], spacing, rigid_normal_at
-    )
+        stencil, phi, n_plug, smp.corner[idx], y[idx], smp.line[idx], smp.reach[idx], spacing, rigid_normal_at,
+        smp.hand_over,
+    )  # fmt: skip
     active = active & carries
     R = frames(normal)
     shift = jnp.asarray(settings.compliance / T, dtype)
