@@ -459,14 +459,12 @@ def line_reach(X: np.ndarray, group: np.ndarray, order: np.ndarray):
     along it from the point back to the first and on to the last, mm. A line runs across its
     face from edge to edge (the box [lo, hi] may cut it short), so these say how far the face
     extends from a point along the rigid part's motion."""
-    G = int(group.max()) + 1 if group.size else 0
-    first = np.full(G, -1)
-    last = np.full(G, -1)
-    for i in np.argsort(order, kind="stable"):
-        g = group[i]
-        if first[g] < 0:
-            first[g] = i
-        last[g] = i
+    by_line = np.lexsort((order, group))  # each line's points in order, line after line
+    starts = np.flatnonzero(np.r_[True, np.diff(group[by_line]) != 0])
+    ends = np.r_[starts[1:], by_line.size] - 1
+    first = np.zeros(int(group.max()) + 1 if group.size else 0, np.int64)
+    last = first.copy()
+    first[group[by_line[starts]]], last[group[by_line[ends]]] = by_line[starts], by_line[ends]
     d = X[last[group]] - X[first[group]]
     length = np.linalg.norm(d, axis=1)
     u = np.where(length[:, None] > 0, d / np.maximum(length, 1e-300)[:, None], 0.0)

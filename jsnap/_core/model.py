@@ -59,7 +59,7 @@ class Samples(eqx.Module):
     reach: jax.Array
     n_groups: int = eqx.field(static=True)
     spacing: float = eqx.field(static=True)
-    hand_over: bool = eqx.field(static=True, default=False)
+    hand_over: bool = eqx.field(static=True)
 
 
 class ContactSettings(eqx.Module):

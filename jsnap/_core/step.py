@@ -276,13 +276,13 @@ def _contact_problem(
     phi, n_plug = model.rigid.scene_query(frame.local(y[idx]), settings.margin)
     n_plug = frame.world(n_plug)
     active = keep[idx]
-    stencil = model.samples.stencil[idx] + part.stencil_disp(state.x, idx)
-    spacing = model.samples.spacing
+    smp = model.samples
+    stencil = smp.stencil[idx] + part.stencil_disp(state.x, idx)
+    spacing = smp.spacing
 
     def rigid_normal_at(points):
         return frame.world(model.rigid.scene_query(frame.local(points), settings.margin + spacing)[1])
 
-    smp = model.samples
     normal, carries = contact_normal(
         stencil, phi, n_plug, smp.corner[idx], y[idx], smp.line[idx], smp.reach[idx], spacing, rigid_normal_at,
         smp.hand_over,
