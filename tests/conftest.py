@@ -25,6 +25,17 @@ os.environ.setdefault("JSNAP_XLA_CACHE", "0")
 ARM = dict(L=10.0, h=1.2, b=4.0)
 
 
+def energy_balance_error(res):
+    """The largest gap, over a rollout, between the deformable part's energy and what the rigid
+    part's work left after friction and the normal forces took theirs (``jsnap.Result``), over
+    the largest work so far: the midpoint rule's balance, exact without damping."""
+    fields = (res.energy, res.work, res.friction_dissipation, res.normal_dissipation)
+    E, work, friction, normal = (np.asarray(a, np.float64) for a in fields)
+    budget = np.cumsum(work)
+    left = budget - np.cumsum(friction + normal)
+    return float(np.abs(E - left).max() / np.abs(budget).max())
+
+
 # The modules with the longest tests, longest first: the suite runs on two workers, one test
 # module each at a time (pytest-xdist, --dist loadfile: a module's fixtures are built once), and
 # starting the long ones first keeps one worker from finishing long after the other.

@@ -372,7 +372,7 @@ def test_cli_json_summary_is_strict_and_timings_apart(tmp_path, capsys):
     assert summary["compile_seconds"] > 0 and summary["build_seconds"] > 0
     assert json.loads((out / "summary.json").read_text(), parse_constant=no_constants)["status"] == "ok"
     header = (out / "forces.csv").read_text().splitlines()[0]
-    assert header.endswith("energy_Nmm,flags")
+    assert header.endswith("energy_Nmm,work_Nmm,friction_dissipation_Nmm,normal_dissipation_Nmm,flags")
 
 
 def test_cli_exits_non_zero_on_a_flagged_result(tmp_path, capsys):

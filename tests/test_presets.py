@@ -19,6 +19,8 @@ from jsnap._geometry.presets import (
 )
 from jsnap._geometry.scene import SceneError, default_scene_path
 
+from .conftest import energy_balance_error
+
 CLIP = default_scene_path().parent / "two_hook_clip.toml"
 LATCH = default_scene_path().parent / "cable_latch.toml"
 LID = default_scene_path().parent / "box_lid.toml"
@@ -269,6 +271,19 @@ def latch_runs():
     scene = jsnap.load_scene(LATCH)
     model = jsnap.build(scene)
     return scene, {mu: jsnap.rollout(model, model.params.replace(friction=mu)).check() for mu in (0.0, 0.3)}
+
+
+def test_energy_budget_closes_on_full_and_reduced_models(squeezed, latch_runs, lid_run):
+    """The midpoint rule's exact balance (energy = work - what friction and the normal forces
+    took, undamped) holds on the reduced models too, whose energy is their own quadratic form:
+    to round-off in float64 (the clip's full model, the lid's reduced one) and to float32's on
+    the latch's shipped model, with friction and without."""
+    assert energy_balance_error(squeezed["clip"][1]) < 1e-9
+    assert energy_balance_error(lid_run[2]) < 1e-9
+    _, runs = latch_runs
+    for res in runs.values():
+        assert energy_balance_error(res) < 1e-5
+    assert np.asarray(runs[0.3].friction_dissipation).sum() > 0.1 * np.asarray(runs[0.3].work).sum()
 
 
 @pytest.mark.parametrize("mu", [0.0, 0.3])

@@ -16,6 +16,8 @@ import jsnap
 from jsnap._apps.cli import main as cli_main
 from jsnap._geometry.scene import SceneError, motion_stroke, with_internal
 
+from .conftest import energy_balance_error
+
 COARSE = {"solver.method": "full", "solver.mesh_size": 1.2, "solver.dtype": "float64", "motion.speed": 20.0}
 # CalculiX, linear geometry, frictionless, default hook (jsnap/data/calculix-cantilever).
 CALCULIX_PEAK_N = 2.486
@@ -61,6 +63,26 @@ def test_frictionless_contact_conserves_energy_up_to_the_peak(cycle):
     E, W = np.asarray(res.energy)[: k + 1], np.cumsum(np.asarray(res.work))[: k + 1]
     assert W[-1] > 0.3  # the hook was bent (N mm)
     assert np.abs(E - W).max() < 1e-3 * W[-1]
+
+
+@pytest.mark.parametrize("run", ["cycle", "default_coarse"])
+def test_energy_budget_closes_step_by_step(request, run):
+    """Undamped, the deformable part's energy is the rigid part's work less what friction and the
+    normal forces took, step by step to round-off (the midpoint rule's exact balance, computed
+    from the contact forces and velocities, not from the energy). Friction only takes energy
+    (maximal dissipation; the contact solve's tolerance allows a little), none without friction;
+    up to the peak, where the rigid part slides over the hook, the normal forces take almost none."""
+    _, model, res = request.getfixturevalue(run)
+    assert energy_balance_error(res) < 1e-9
+    W, friction = np.cumsum(np.asarray(res.work)), np.asarray(res.friction_dissipation)
+    assert friction.min() > -1e-3 * np.abs(np.asarray(res.work)).max()
+    k = int(np.argmax(np.asarray(res.insertion_force)))
+    taken = np.cumsum(friction)[k]
+    if float(model.params.friction) == 0.0:
+        assert np.abs(friction).max() < 1e-12 * W.max()
+    else:
+        assert taken > 0.3 * W[k]  # the hook slides under friction 0.3 all the way up
+    assert abs(np.cumsum(np.asarray(res.normal_dissipation))[k]) < 0.03 * W[k]
 
 
 def test_base_wrench_balances_contact(cycle):

@@ -312,7 +312,7 @@ def _contact_candidates(scene: Scene, g: _Geometry, asm: Assembly):
         reach=jnp.asarray(reach),
         n_groups=int(group.max()) + 1,
         spacing=float(ct["spacing"]),
-        hand_over=sampler is surface_samples,
+        hand_over={"auto": sampler is surface_samples, "on": True, "off": False}[ct["hand_over"]],
     )
     return samples, sample, st, seeds, normals
 

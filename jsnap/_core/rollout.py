@@ -56,6 +56,15 @@ class Result(StepOutput):
             against (the orientation follows its path under either drive).
         energy: (n,) the deformable part's energy 1/2 v'Mv + 1/2 x'Kx after the step, N mm.
         work: (n,) work of the rigid part on the deformable part during the step, N mm.
+        friction_dissipation: (n,) energy the friction forces took from the two parts during
+            the step, N mm (non-negative: maximal dissipation).
+        normal_dissipation: (n,) energy the normal contact forces took during the step, N mm:
+            zero where contacts persist with their gaps closed; an inelastic impact (a snap
+            landing) takes a little; a contact held across a gap it does not touch takes energy
+            step after step, the sign of a wrong contact normal (docs/contact.md "Energy").
+            The midpoint rule's balance is exact: ``energy[k] - energy[k-1] = work[k] -
+            friction_dissipation[k] - normal_dissipation[k]``, less what damping took (Rayleigh
+            damping; a segmented part's interface dampers).
         plug: (n, 3) the rigid part's centre, mm.
         plug_rotation: (n, 4) its orientation, a unit quaternion (w, x, y, z).
         contact_force: (n, C, 3) force of the rigid part on the deformable part at each slot, N.
@@ -195,6 +204,8 @@ def _result(out: StepOutput, xs, start, valid, dt, axis) -> Result:
         coupling_moment=out.coupling_moment,
         energy=out.energy,
         work=out.work,
+        friction_dissipation=out.friction_dissipation,
+        normal_dissipation=out.normal_dissipation,
         plug=out.plug,
         plug_rotation=out.plug_rotation,
         contact_force=out.contact_force,
@@ -213,8 +224,8 @@ def _result(out: StepOutput, xs, start, valid, dt, axis) -> Result:
 
 _FLOAT_FIELDS = (
     "travel", "insertion_force", "lateral_force", "base_force", "base_moment", "coupling_force",
-    "coupling_moment", "energy", "work", "plug", "plug_rotation", "contact_force", "contact_point", "residual",
-    "x",
+    "coupling_moment", "energy", "work", "friction_dissipation", "normal_dissipation", "plug", "plug_rotation",
+    "contact_force", "contact_point", "residual", "x",
 )  # fmt: skip
 
 

@@ -93,6 +93,8 @@ class StepOutput(eqx.Module):
     coupling_moment: jax.Array
     energy: jax.Array
     work: jax.Array
+    friction_dissipation: jax.Array
+    normal_dissipation: jax.Array
     plug: jax.Array
     plug_rotation: jax.Array
     contact_force: jax.Array
@@ -363,6 +365,7 @@ class _Pass(NamedTuple):
     idx: jax.Array
     active: jax.Array
     points: jax.Array
+    normal: jax.Array  # (C, 3) contact normals, world axes
     overflow: jax.Array
     phi_end: jax.Array  # (P,) least signed distance along the solved path
     fresh: jax.Array  # (P,) points that path carries into the rigid part, not in the buffer
@@ -419,7 +422,7 @@ def _step(model: Model, prepared: Prepared, state: State, control):
         )
         in_buffer = jnp.zeros(phi_now.shape, bool).at[prob.idx].set(prob.active)
         fresh = (phi_end < -0.5 * settings.margin) & ~in_buffer
-        slots = (prob.idx, prob.active, prob.points, prob.overflow)
+        slots = (prob.idx, prob.active, prob.points, prob.R[:, :, 0], prob.overflow)
         return _Pass(dv, Gamma, sol, *slots, phi_end, fresh, jnp.asarray(second))
 
     def solve_pass(p: _Pass, second):
@@ -460,6 +463,9 @@ def _step(model: Model, prepared: Prepared, state: State, control):
         | jnp.where(sol.residual > 100 * settings.solver.tol, status.NOT_CONVERGED, 0)
     ).astype(jnp.int32)
     arm = res.points - state.plug
+    friction_loss, normal_loss = _contact_dissipation(
+        T, Gamma, res.normal, part.point_velocity(vbar, idx) - vbar_p - frame.spin(res.points)
+    )
     out = StepOutput(
         insertion_force=jnp.sum(total * model.axis),
         lateral_force=-total[0],
@@ -469,6 +475,8 @@ def _step(model: Model, prepared: Prepared, state: State, control):
         coupling_moment=jnp.sum(jnp.cross(arm, Gamma), axis=0),
         energy=part.energy(op, x_new, v_new),
         work=T * (jnp.sum(Gamma * vbar_p) + jnp.sum(Gamma * frame.spin(res.points))),
+        friction_dissipation=friction_loss,
+        normal_dissipation=normal_loss,
         plug=plug_new,
         plug_rotation=rotation,
         contact_force=Gamma,
@@ -484,6 +492,25 @@ def _step(model: Model, prepared: Prepared, state: State, control):
     gamma = jnp.zeros_like(state.gamma).at[idx].set(sol.gamma * active[:, None])
     new = State(x_new, v_new, plug_new, vbar_p * 2 - state.plug_vel, control, state.t + T, gamma, rotation)
     return new, out
+
+
+def _contact_dissipation(T, Gamma, normal, u):
+    """``(friction, normal)``: the energy the contact forces take from the two parts in the
+    step, N mm, split along the contact normals. ``Gamma`` (C, 3) the forces on the deformable
+    part, ``u`` (C, 3) its points' midpoint velocity relative to the rigid part's surface
+    there, both in world axes (inactive slots carry no force).
+
+    The midpoint rule's energy balance is exact: the rigid part's work less the change of the
+    deformable part's energy is the damping's ``T v̄'Dv̄`` plus ``-T Γ·u``, which these two
+    terms split. The friction term is non-negative at a solution of the cone problem
+    (maximal dissipation). The normal term is zero where a contact persists with its gap
+    closed; it is positive where the contact closes a gap within the step (an inelastic
+    impact, or a point held across a gap it does not touch) and negative where the
+    stabilisation pushes a penetrating point out."""
+    n_force = jnp.sum(Gamma * normal, axis=-1)
+    n_speed = jnp.sum(u * normal, axis=-1)
+    normal_loss = -T * jnp.sum(n_force * n_speed)
+    return -T * jnp.sum(Gamma * u) - normal_loss, normal_loss
 
 
 @x64

@@ -410,6 +410,14 @@ SCHEMA: dict[str, dict[str, Key]] = {
             internal=True,
             doc="how jax.grad goes through the contact solve",
         ),
+        "hand_over": Key(
+            str,
+            "auto",
+            choices=("auto", "on", "off"),
+            internal=True,
+            doc="face points beside an edge that the rigid part presses leave their contact to the edge: "
+            "with the general surface sampling (auto), always or never",
+        ),
     },
     "plug": {
         "fillet": _nonneg("mm", 0.1, "edge radius of the preset rigid part (a rounded block)"),
