@@ -373,6 +373,12 @@ def test_cli_json_summary_is_strict_and_timings_apart(tmp_path, capsys):
     assert json.loads((out / "summary.json").read_text(), parse_constant=no_constants)["status"] == "ok"
     header = (out / "forces.csv").read_text().splitlines()[0]
     assert header.endswith("energy_Nmm,work_Nmm,friction_dissipation_Nmm,normal_dissipation_Nmm,flags")
+    # Undamped: up to the peak the work went into the part's energy, friction and the normal forces.
+    budget = summary["energy_to_peak"]
+    assert budget["work_Nmm"] > 0 and budget["friction_dissipation_Nmm"] > 0
+    taken = budget["energy_Nmm"] + budget["friction_dissipation_Nmm"] + budget["normal_dissipation_Nmm"]
+    assert taken == pytest.approx(budget["work_Nmm"], rel=1e-4)
+    assert not any("normal contact forces" in w for w in summary["warnings"])
 
 
 def test_cli_exits_non_zero_on_a_flagged_result(tmp_path, capsys):

@@ -131,6 +131,14 @@ def _own_parts(d):
     return f"STL path against the tet file, peak: {diffs}"
 
 
+def _hand_over_cost(d):
+    rows = ", ".join(
+        f"{name} {r['steps_per_second']['hand_over']:.0f} (x{r['cost_ratio']:.2f})"
+        for name, r in d["parts"].items()
+    )
+    return f"steps/s with the hand-over (without it over with it): {rows}"
+
+
 def _hook_family(d):
     h = d["headline"]
     return (
@@ -518,6 +526,12 @@ BENCHMARKS = [
         timed=False,
     ),
     Bench("sdf_speed", "SDF query speed: neural against exact mesh", True, _sdf_speed),
+    Bench(
+        "hand_over_cost",
+        "the face points' hand-over of contact to the edges: steps/s with and without it",
+        False,
+        _hand_over_cost,
+    ),
     Bench("contact_squeeze", "APGD against PGS on the symmetric squeeze", True, _contact_squeeze),
     Bench(
         "two_hook_clip",
