@@ -16,6 +16,7 @@ import functools
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 import jsnap
 from jsnap._apps.simulate import energy_to_peak
@@ -60,3 +61,32 @@ def test_simulate_warns_where_the_normal_forces_hold_the_pin_across_a_gap():
     budget, warning = energy_to_peak(_rollout(1e-3, "off"))
     assert budget["normal_dissipation_Nmm"] > 0.5 * budget["work_Nmm"]
     assert warning is not None and "across a gap" in warning
+
+
+def _off_centre_scene(tmp_path):
+    """The clip's scene with the pin entering 0.2 mm off the clip's centre and turning by 3°."""
+    a = np.radians(3.0) / 2
+    first = "{ t = 0.0, position = [0.0, 0.0, 0.0], rotation = [1.0, 0.0, 0.0, 0.0] }"
+    last = f"{{ t = 0.165, position = [0.2, -3.3, 0.0], rotation = [{np.cos(a)}, 0.0, 0.0, {np.sin(a)}] }}"
+    text = SCENE.read_text()
+    motion = f"[motion]\nwaypoints = [\n  {first},\n  {last},\n]\n\n"
+    text = text[: text.index("[motion]")] + motion + text[text.index("[solver]") :]
+    for name in ("clip.msh", "pin.stl"):
+        (tmp_path / name).write_bytes((SCENE.parent / name).read_bytes())
+    (tmp_path / "scene.toml").write_text(text)
+    return jsnap.load_scene(tmp_path / "scene.toml")
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="after the snap the mouth's edges, sliding on the pin's back, and the seat's wall take normals 5-10 "
+    "degrees off the pin's and hold it across gaps of a few um: 0.61 of the work is kept at the peak "
+    "(docs/contact.md, known limitations)",
+)
+def test_off_centre_pin_frictionless_contact_conserves_energy_up_to_the_peak(tmp_path):
+    frictionless = {"contact.friction": 0.0, "solver.dtype": "float64"}
+    res = jsnap.rollout(jsnap.build(_off_centre_scene(tmp_path).replace(frictionless)))
+    assert res.ok, res.status()
+    budget, _ = energy_to_peak(res)
+    assert budget["work_Nmm"] > 0.3
+    assert budget["energy_Nmm"] > 0.975 * budget["work_Nmm"]

@@ -178,7 +178,7 @@ def energy_to_peak(res) -> tuple[dict, str | None]:
     if not (work > 0 and normal > NORMAL_DISSIPATION_LIMIT * work):
         return budget, None
     return budget, (
-        f"the normal contact forces took {100 * normal / work:.0f} % of the rigid part's work before the peak "
+        f"the normal contact forces took {100 * normal / work:.1f} % of the rigid part's work before the peak "
         f"force (more than {100 * NORMAL_DISSIPATION_LIMIT:g} %): contacts held points across a gap, so forces "
         "may be too high; check the run frictionless (energy against work) and at half solver.dt "
         "(docs/own-connector.md)"
