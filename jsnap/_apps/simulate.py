@@ -146,9 +146,10 @@ def _finite(x):
 
 
 # Share of the rigid part's work up to the peak force that the normal contact forces may take
-# before a run is warned. Measured: the shipped presets and the pipe clip of tests/data take at
-# most 1.8 % frictionless and 3 % at friction 0.3; the pipe clip whose face points held its pin
-# across a gap (before the hand-over of docs/contact.md "Normals") took 73 %.
+# before a run is warned. Measured (float64): the shipped presets and the pipe clip of
+# tests/data take at most 1.7 % frictionless and 1.8 % at friction 0.3; the pipe clip whose face
+# points held its pin across a gap (without the hand-over of docs/contact.md "Normals") took 73 %
+# frictionless (docs/contact.md "Energy").
 NORMAL_DISSIPATION_LIMIT = 0.05
 
 
