@@ -367,6 +367,7 @@ class _Pass(NamedTuple):
     points: jax.Array
     normal: jax.Array  # (C, 3) contact normals, world axes
     overflow: jax.Array
+    velocity: jax.Array  # (P, 3) the points' midpoint velocity with this solve's dv, mm/s
     phi_end: jax.Array  # (P,) least signed distance along the solved path
     fresh: jax.Array  # (P,) points that path carries into the rigid part, not in the buffer
     corrected: jax.Array  # this is the second solve
@@ -414,7 +415,8 @@ def _step(model: Model, prepared: Prepared, state: State, control):
         # the step is straight, but a released stiff part can move farther than the rigid part
         # is thick in one step (PMI's undamped high modes flip sign), so the path is checked at
         # several points, not only at its end.
-        dy = T * part.sample_disp(vbar_free + dv)
+        vel = part.sample_disp(vbar_free + dv)  # (P, 3) the points' solved midpoint velocity
+        dy = T * vel
         dp = T * (vp_free - s_p * jnp.sum(Gamma, axis=0))
         spin = T * frame.spin(y)  # the rigid part's turn over the step, to first order
         phi_end = model.rigid.least_along(
@@ -423,7 +425,7 @@ def _step(model: Model, prepared: Prepared, state: State, control):
         in_buffer = jnp.zeros(phi_now.shape, bool).at[prob.idx].set(prob.active)
         fresh = (phi_end < -0.5 * settings.margin) & ~in_buffer
         slots = (prob.idx, prob.active, prob.points, prob.R[:, :, 0], prob.overflow)
-        return _Pass(dv, Gamma, sol, *slots, phi_end, fresh, jnp.asarray(second))
+        return _Pass(dv, Gamma, sol, *slots, vel, phi_end, fresh, jnp.asarray(second))
 
     def solve_pass(p: _Pass, second):
         """The first solve, or the second after ``p``: its fresh points added, warm-started
@@ -464,7 +466,7 @@ def _step(model: Model, prepared: Prepared, state: State, control):
     ).astype(jnp.int32)
     arm = res.points - state.plug
     friction_loss, normal_loss = _contact_dissipation(
-        T, Gamma, res.normal, part.point_velocity(vbar, idx) - vbar_p - frame.spin(res.points)
+        T, Gamma, res.normal, res.velocity[idx] - vbar_p - frame.spin(res.points)
     )
     out = StepOutput(
         insertion_force=jnp.sum(total * model.axis),
