@@ -131,6 +131,15 @@ def _own_parts(d):
     return f"STL path against the tet file, peak: {diffs}"
 
 
+def _part_size(d):
+    rows = []
+    for family, cases in (("preset", d["preset"]), ("files", d["files"])):
+        ratios = [c["peak_ratio_mu0.0"] for c in cases] + [c["peak_ratio_mu0.3"] for c in cases]
+        span = f"{cases[0]['k']:g}..{cases[-1]['k']:g}"
+        rows.append(f"{family} k = {span}: peak / k^2 {min(ratios):.3f}-{max(ratios):.3f} of k = 1")
+    return "; ".join(rows)
+
+
 def _hand_over_cost(d):
     rows = ", ".join(
         f"{name} {r['steps_per_second']['hand_over']:.0f} (x{r['cost_ratio']:.2f})"
@@ -526,6 +535,13 @@ BENCHMARKS = [
         timed=False,
     ),
     Bench("sdf_speed", "SDF query speed: neural against exact mesh", True, _sdf_speed),
+    Bench(
+        "part_size",
+        "the shipped hook scaled 1/16 to 16 times, as a preset and as files, against dimensional analysis",
+        False,
+        _part_size,
+        timed=False,
+    ),
     Bench(
         "hand_over_cost",
         "the face points' hand-over of contact to the edges: steps/s with and without it",

@@ -16,6 +16,7 @@ import tomllib
 
 from jsnap._geometry import scene as _scene
 from jsnap._geometry.scene import CONNECTORS, REQUIRED, SCHEMA, Key, default_scene_path
+from jsnap._geometry.size import BAND, GEOMETRIC, REFERENCE_THICKNESS, REFERENCE_WALL, SIZED
 
 __all__ = ["render"]
 
@@ -140,10 +141,15 @@ def _cell(text: str) -> str:
 
 def _row(section: str, key: str, spec: Key) -> str:
     meaning, derived = _split_doc(spec.doc)
+    dotted = f"{section}.{key}"
     if spec.default is REQUIRED:
         default = "required"
     elif spec.default is None:
         default = f"derived: {derived}" if derived else "derived"
+    elif dotted in GEOMETRIC:
+        default = f"{_value(GEOMETRIC[dotted])} × wall ratio"
+    elif dotted in SIZED:
+        default = f"{_value(SIZED[dotted])} × size"
     else:
         default = _value(spec.default)
     unit = spec.unit or ("–" if spec.kind in (float, int) else "")
@@ -226,6 +232,18 @@ def render() -> str:
         "Units everywhere: mm, N, MPa, s, tonne (density in t/mm³); angles in degrees. A key that "
         "is absent takes its default; a default marked *derived* is computed from other keys as "
         "its entry says.",
+        "",
+        "Defaults that are lengths follow the part's size. The *wall ratio* is the part's wall "
+        "thickness over the shipped part's: a preset's `connector.thickness` over its shipped "
+        f"scene's ({', '.join(f'{k} {v:g} mm' for k, v in REFERENCE_THICKNESS.items())}), a part "
+        "file's measured wall thickness (the area-weighted median of its thickness along the inward "
+        f"normals) over the shipped hook's {REFERENCE_WALL:g} mm. A default marked *× wall ratio* "
+        "(the element size, the preset rigid part's shape) is its value times the wall ratio. A "
+        "default marked *× size* (the contact's resolution) is its value times the part's *size*: "
+        f"1 while the wall ratio is within a factor {BAND:g} of 1, where these defaults hold as they "
+        f"are, and beyond that the wall ratio over the band's edge (ratio / {BAND:g} above, "
+        f"ratio × {BAND:g} below). `scene.size` holds it; a key given in the scene keeps its value "
+        "([parts of any size](guide.md#parts-of-any-size)).",
         "",
         "A scene needs only the required keys; with the shipped default scene's values:",
         "",

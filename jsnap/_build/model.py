@@ -23,8 +23,6 @@ from jsnap._build.modal import modal_part
 from jsnap._build.neural_sdf import load_or_train
 from jsnap._build.reduce import build_part
 from jsnap._build.samples import (
-    STENCIL_SIDE,
-    STENCIL_WIDTH,
     locate_on_faces,
     reachable_faces,
     line_reach,
@@ -42,6 +40,7 @@ from jsnap._core.sdf import BoundedSDF, RoundedBoxSDF, RoundedCylinderSDF
 from jsnap._geometry.motion import quat_matrix, sample_poses, straight_insertion, straight_poses
 from jsnap._geometry.part import load_part, load_rigid
 from jsnap._geometry.presets import generate, hook_of
+from jsnap._geometry.size import STENCIL_SIDE, STENCIL_WIDTH
 from jsnap._geometry.scene import (
     Scene,
     SceneError,
@@ -268,7 +267,7 @@ def _contact_candidates(scene: Scene, g: _Geometry, asm: Assembly):
     if g.radius is not None and ct["sampling"] == "auto":
         sampler = turned_samples
         X, normals, corner, stencil, group, order = turned_samples(
-            g.cantilever, g.radius, mesh, lo, hi, ct["spacing"], ct["width_spacing"]
+            g.cantilever, g.radius, mesh, lo, hi, ct["spacing"], ct["width_spacing"], scene.size
         )
     elif g.cantilever is not None and ct["sampling"] == "auto":
         # The canonical cantilever keeps its own section sampling: the general one differs from
@@ -276,19 +275,19 @@ def _contact_candidates(scene: Scene, g: _Geometry, asm: Assembly):
         # contact is sampled" in docs/own-connector.md).
         sampler = section_samples
         X, normals, corner, stencil, group, order = section_samples(
-            g.cantilever, lo, hi, ct["spacing"], ct["width_spacing"]
+            g.cantilever, lo, hi, ct["spacing"], ct["width_spacing"], scene.size
         )
     else:
         X, normals, corner, stencil, group, order = surface_samples(
-            mesh, lo, hi, g.axis, ct["spacing"], ct["width_spacing"]
+            mesh, lo, hi, g.axis, ct["spacing"], ct["width_spacing"], scene.size
         )
     if X.shape[0] == 0:
         raise BuildError("no contact candidate on the part's surface where the rigid part passes")
-    nodes, weights, owner = locate_on_faces(asm, faces, X, normals[:, 0])
-    pad = max(STENCIL_SIDE, STENCIL_WIDTH)
+    nodes, weights, owner = locate_on_faces(asm, faces, X, normals[:, 0], scene.size)
+    pad = max(STENCIL_SIDE, STENCIL_WIDTH) * scene.size
     st_faces = reachable_faces(mesh, lo - pad, hi + pad)
     st_nodes, st_weights, st_owner = locate_on_faces(
-        asm, st_faces, stencil.reshape(-1, 3), np.repeat(normals, 4, axis=1).reshape(-1, 3)
+        asm, st_faces, stencil.reshape(-1, 3), np.repeat(normals, 4, axis=1).reshape(-1, 3), scene.size
     )
     # Interpolating nodes that are clamped do not move: point them at free node 0, weight 0.
     node_to_free = -np.ones(asm.nodes.shape[0], dtype=np.int64)

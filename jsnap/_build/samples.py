@@ -18,10 +18,9 @@ import numpy as np
 from jsnap._build.fem import Assembly
 from jsnap._geometry.cantilever import Cantilever
 from jsnap._geometry.mesh import TetMesh
+from jsnap._geometry.size import STENCIL_SIDE, STENCIL_WIDTH
 
 __all__ = [
-    "STENCIL_SIDE",
-    "STENCIL_WIDTH",
     "locate_on_faces",
     "reachable_faces",
     "section_samples",
@@ -37,19 +36,11 @@ def _edge_node_lookup(asm: Assembly):
     return {(int(a), int(b)): n_vert + i for i, (a, b) in enumerate(edges)}
 
 
-# Half-size of the stencil whose deformed shape gives a contact point's normal, mm: along the
-# section side (capped by the side's length) and across the width. A point force dimples the
-# elastic surface over about an element; the normal of the face under the point would tilt with
-# that dimple and give frictionless contacts a spurious tangential force, so the normal is taken
-# from the deformed positions of points a stencil apart, which follow the face's rotation.
-STENCIL_SIDE = 0.25
-STENCIL_WIDTH = 0.5
-
-
-def section_samples(geom: Cantilever, lo, hi, spacing: float, width_spacing: float):
+def section_samples(geom: Cantilever, lo, hi, spacing: float, width_spacing: float, size: float = 1.0):
     """Candidate points of the extruded connector: its section outline sampled every
     ``spacing`` (mm, fine: across a contact line) times ``width_spacing`` across the width (mm,
-    coarse: along it), kept inside the box [lo, hi].
+    coarse: along it), kept inside the box [lo, hi]; ``size``: the part's size (its stencils'
+    scale).
 
     Returns points (P, 3); the rest outward normals (P, 2, 3) of the side each point lies on and
     of the other side at a corner (the same side elsewhere); a (P,) flag for points on a convex
@@ -59,6 +50,7 @@ def section_samples(geom: Cantilever, lo, hi, spacing: float, width_spacing: flo
     and each point's group (P,) (one group per section side and width position, numbered from 0)
     and its order (P,) along its side.
     """
+    side_half, width_half = STENCIL_SIDE * size, STENCIL_WIDTH * size
     poly = geom.section()
     half_w = geom.width / 2
     sides = []  # (start, direction, length, outward normal) of the non-degenerate sides
@@ -76,9 +68,9 @@ def section_samples(geom: Cantilever, lo, hi, spacing: float, width_spacing: flo
         for j in range(n):
             s_here = length * j / n
             pts.append(a + d * s_here)
-            own = (a + d * max(0.0, s_here - STENCIL_SIDE), a + d * min(length, s_here + STENCIL_SIDE))
+            own = (a + d * max(0.0, s_here - side_half), a + d * min(length, s_here + side_half))
             if j == 0 and convex:  # the corner: the previous side's stencil ends here
-                other, n_other = (a - dp * min(lp, STENCIL_SIDE), a), outp
+                other, n_other = (a - dp * min(lp, side_half), a), outp
             else:
                 other, n_other = own, out
             corner.append(j == 0 and convex)
@@ -98,7 +90,7 @@ def section_samples(geom: Cantilever, lo, hi, spacing: float, width_spacing: flo
     X = lift(pts, ys)
     N = np.stack([lift(nrm[:, k], np.zeros(ny)) for k in range(2)], axis=1)
     C = np.repeat(np.array(corner), ny)
-    y_lo, y_hi = np.clip(ys - STENCIL_WIDTH, -half_w, half_w), np.clip(ys + STENCIL_WIDTH, -half_w, half_w)
+    y_lo, y_hi = np.clip(ys - width_half, -half_w, half_w), np.clip(ys + width_half, -half_w, half_w)
     across = [lift(pts, y_lo), lift(pts, y_hi)]
     stencil = np.stack(
         [lift(stn[:, 0], ys), lift(stn[:, 1], ys), *across, lift(stn[:, 2], ys), lift(stn[:, 3], ys), *across],
@@ -111,7 +103,16 @@ def section_samples(geom: Cantilever, lo, hi, spacing: float, width_spacing: flo
     return X[keep], N[keep], C[keep], stencil[keep], group, order[keep]
 
 
-def turned_samples(geom: Cantilever, radius: float, mesh: TetMesh, lo, hi, spacing: float, width_spacing: float):
+def turned_samples(
+    geom: Cantilever,
+    radius: float,
+    mesh: TetMesh,
+    lo,
+    hi,
+    spacing: float,
+    width_spacing: float,
+    size: float = 1.0,
+):
     """Candidate points of the annular snap's sector (:func:`jsnap._geometry.presets.generate`):
     :func:`section_samples` of its hook section, turned about the z axis (the section's depth
     ``x`` from the bore is ``r = radius + h - x``, its width position ``y`` the arc ``radius
@@ -126,7 +127,7 @@ def turned_samples(geom: Cantilever, radius: float, mesh: TetMesh, lo, hi, spaci
     import trimesh
 
     inf = np.full(3, np.inf)
-    X, N, C, S, G, O = section_samples(geom, -inf, inf, spacing, width_spacing)
+    X, N, C, S, G, O = section_samples(geom, -inf, inf, spacing, width_spacing, size)
     # Lines at the middles of the strips, not on the sector's cut planes.
     ny = math.ceil(geom.width / width_spacing) + 1
     X, S = X * [1, (ny - 1) / ny, 1], S * [1, (ny - 1) / ny, 1]
@@ -151,22 +152,29 @@ def turned_samples(geom: Cantilever, radius: float, mesh: TetMesh, lo, hi, spaci
     return X, N[keep], C[keep], S, G, O[keep]
 
 
-# Distance from a face (plane distance plus the barycentric excess scaled by the face's size, mm)
-# below which a point counts as lying on it.
+# Distance from a face (plane distance plus the barycentric excess scaled by the face's size, mm
+# at the part's size 1) below which a point counts as lying on it, besides the float32 rounding
+# of the part's coordinates (_FLOAT32_ROUNDING, below: a file's flat patch is a plane only to it).
 _ON_FACE = 1e-7
+# Largest distance of a flat patch's vertices from its plane, mm at size 1: faces joined through
+# slowly turning neighbours farther from it are a curved surface. Besides it, a part's vertices
+# may stand off their plane by float32 rounding (an STL file's; gmsh places its nodes on those
+# facets), a few units of 6e-8 of their coordinates: that much more is allowed.
+_PLANAR = 1e-7
+_FLOAT32_ROUNDING = 4 * 2.0**-24
 
 
-def _candidate_pairs(tri: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _candidate_pairs(tri: np.ndarray, X: np.ndarray, on_face: float) -> tuple[np.ndarray, np.ndarray]:
     """(point, face) index pairs (k,), (k,) of the points X (P, 3) and the triangles tri (F, 3, 3)
     that may lie on one another: the point within the largest circumradius about the centroid
     of the face (any point of a triangle is within that of its centroid), with a margin well
-    above :data:`_ON_FACE`. A k-d tree of the centroids keeps this O(P log F) in time and O(P)
+    above ``on_face`` (:data:`_ON_FACE` at the part's size). A k-d tree of the centroids keeps this O(P log F) in time and O(P)
     in memory, where testing every point against every face took P x F x 3 floats."""
     from scipy.spatial import cKDTree
 
     centre = tri.mean(axis=1)
     reach = np.linalg.norm(tri - centre[:, None], axis=2).max()
-    reach = reach * (1 + 1e-6) + 1e3 * _ON_FACE
+    reach = reach * (1 + 1e-6) + 1e3 * on_face
     near = cKDTree(centre).query_ball_point(X, reach)
     counts = np.fromiter((len(c) for c in near), dtype=np.int64, count=len(X))
     p = np.repeat(np.arange(len(X)), counts)
@@ -174,14 +182,14 @@ def _candidate_pairs(tri: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.nda
     return p, f
 
 
-def locate_on_faces(asm: Assembly, faces: np.ndarray, X: np.ndarray, normals: np.ndarray):
+def locate_on_faces(asm: Assembly, faces: np.ndarray, X: np.ndarray, normals: np.ndarray, size: float = 1.0):
     """Face of each point (on the boundary) and its interpolating nodes and weights.
 
     A point on an edge of the socket lies on several faces; it is given the one whose normal is
     closest to ``normals`` (P, 3), the outward normal of the section side it was sampled on, so
     that every point of one side shares that side's normal. The weights are the element's own
     shape functions on the face (P1: barycentric; P2: vertex l(2l-1), edge 4 l_i l_j), so the
-    contact resolution is independent of the mesh.
+    contact resolution is independent of the mesh. ``size``: the part's size.
     Returns nodes (P, k), weights (P, k) and the face index (P,).
     """
     pts = asm.mesh.points
@@ -189,7 +197,8 @@ def locate_on_faces(asm: Assembly, faces: np.ndarray, X: np.ndarray, normals: np
     e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
     nrm = np.cross(e1, e2)
     area2 = np.linalg.norm(nrm, axis=1)
-    p, f = _candidate_pairs(tri, X)
+    on_face = _ON_FACE * size + _FLOAT32_ROUNDING * float(np.max(np.abs(pts)))
+    p, f = _candidate_pairs(tri, X, on_face)
     d = X[p] - tri[f, 0]  # one row per (point, face) pair near each other
     plane = np.abs(np.einsum("kd,kd->k", d, nrm[f])) / area2[f]
     l2 = np.einsum("kd,kd->k", d, np.cross(nrm, e1)[f]) / area2[f] ** 2
@@ -197,7 +206,7 @@ def locate_on_faces(asm: Assembly, faces: np.ndarray, X: np.ndarray, normals: np
     l0 = 1 - l1 - l2
     outside = np.maximum(np.maximum(-l0, -l1), -l2).clip(min=0)
     score = plane + outside * area2[f] ** 0.5
-    on = score <= _ON_FACE
+    on = score <= on_face
     if not np.all(np.bincount(p[on], minlength=len(X)) > 0):
         raise RuntimeError("contact sample not on the socket surface (geometry/mesh mismatch)")
     align = np.einsum("kd,kd->k", normals[p], nrm[f] / area2[f, None])
@@ -317,7 +326,7 @@ def _patch_frame(normal_sum: np.ndarray, direction: np.ndarray, points: np.ndarr
     return n, u, np.cross(u, n)
 
 
-def surface_samples(mesh: TetMesh, lo, hi, direction, spacing: float, width_spacing: float):
+def surface_samples(mesh: TetMesh, lo, hi, direction, spacing: float, width_spacing: float, size: float = 1.0):
     """Candidate points on any part's surface within the box [lo, hi] (mm).
 
     The boundary faces there are joined into flat patches (normals within 1 degree), and each
@@ -332,6 +341,7 @@ def surface_samples(mesh: TetMesh, lo, hi, direction, spacing: float, width_spac
     Returns the same arrays as :func:`section_samples` (points, normals (P, 2, 3), corner,
     stencils (P, 8, 3), group, order).
     """
+    side_half, width_half = STENCIL_SIDE * size, STENCIL_WIDTH * size
     pts = mesh.points
     # Whole patches are sampled (their grid does not depend on the box), then cut to the box.
     faces = mesh.boundary_faces()
@@ -343,12 +353,13 @@ def surface_samples(mesh: TetMesh, lo, hi, direction, spacing: float, width_spac
     label, neighbour = _patches(pts, faces, unit, flat)
     scale = float(np.linalg.norm(np.ptp(pts, axis=0)))
     tol = 1e-9 * scale
+    planar = _PLANAR * size + _FLOAT32_ROUNDING * float(np.max(np.abs(pts)))
     # Faces joined through slowly turning neighbours (a curved surface) are not one plane:
     # each of those is its own patch.
     for p in np.unique(label):
         members = np.flatnonzero(label == p)
         n = np.sum(nrm[members], axis=0)
-        if np.max(np.abs((tri[members] - tri[members[0], 0]) @ (n / np.linalg.norm(n)))) > 1e-7:
+        if np.max(np.abs((tri[members] - tri[members[0], 0]) @ (n / np.linalg.norm(n)))) > planar:
             label[members] = label.max() + 1 + np.arange(members.size)
     d = np.asarray(direction, np.float64) / np.linalg.norm(direction)
     frames = {
@@ -391,14 +402,16 @@ def surface_samples(mesh: TetMesh, lo, hi, direction, spacing: float, width_spac
                 # The stencil along the line and across it, each arm shortened until it stays on
                 # the patch (a line may cross a non-convex patch in several pieces).
                 own = [
-                    p - _on_patch_step(P2, us[j], vk, (-1.0, 0.0), us[j] - u_lo, STENCIL_SIDE, tol * scale) * u,
-                    p + _on_patch_step(P2, us[j], vk, (1.0, 0.0), u_hi - us[j], STENCIL_SIDE, tol * scale) * u,
+                    p - _on_patch_step(P2, us[j], vk, (-1.0, 0.0), us[j] - u_lo, side_half, tol * scale) * u,
+                    p + _on_patch_step(P2, us[j], vk, (1.0, 0.0), u_hi - us[j], side_half, tol * scale) * u,
                 ]
                 for sign in (-1.0, 1.0):
                     room = (vk - v_lo) if sign < 0 else (v_hi - vk)
-                    step = _on_patch_step(P2, us[j], vk, (0.0, sign), room, STENCIL_WIDTH, tol * scale)
+                    step = _on_patch_step(P2, us[j], vk, (0.0, sign), room, width_half, tol * scale)
                     own.append(p + sign * step * v)
-                own = _sound(own, tri[members[_triangle_at(P2, us[j], vk, tol * scale)]], n)
+                own = _sound(
+                    own, tri[members[_triangle_at(P2, us[j], vk, tol * scale)]], n, side_half * width_half
+                )
                 other, n_other, corner = own, n, False
                 if j in ends:
                     face, edge = _boundary_edge_at(P2, members, ends[j], neighbour, label, us[j], vk, 4 * tol)
@@ -413,10 +426,8 @@ def surface_samples(mesh: TetMesh, lo, hi, direction, spacing: float, width_spac
                             n2 = unit[nb]
                             w = np.cross(n2, e)  # in the neighbour, across the edge
                             into = 1.0 if np.dot(far - p, w) >= 0 else -1.0
-                            step = STENCIL_SIDE  # shortened to stay on the neighbour
-                            while step > 1e-3 * STENCIL_SIDE and not on_patch(
-                                int(label[nb]), p + into * step * w
-                            ):
+                            step = side_half  # shortened to stay on the neighbour
+                            while step > 1e-3 * side_half and not on_patch(int(label[nb]), p + into * step * w):
                                 step *= 0.5
                             if on_patch(int(label[nb]), p + into * step * w):  # else: a face point
                                 side = [p, p + step * w] if into > 0 else [p - step * w, p]
@@ -424,11 +435,11 @@ def surface_samples(mesh: TetMesh, lo, hi, direction, spacing: float, width_spac
                                     along = own[2:]  # the points across lie on the edge, on both patches
                                 else:
                                     length = np.linalg.norm(b - a)
-                                    half = 0.5 * min(length, 2 * STENCIL_WIDTH)
+                                    half = 0.5 * min(length, 2 * width_half)
                                     mid = np.clip(np.dot(p - a, e), half, length - half)
                                     along = [a + (mid - half) * e, a + (mid + half) * e]
                                 other, n_other, corner = [*side, *along], n2, True
-                                other = _sound(other, tri[nb], n2)
+                                other = _sound(other, tri[nb], n2, side_half * width_half)
                 X.append(p)
                 N.append((n, n_other))
                 C.append(corner)
@@ -478,7 +489,7 @@ def _triangle_at(P2, u: float, v: float, tol: float) -> int:
     return next((t for t in range(P2.shape[0]) if _inside(P2[t : t + 1], q, tol)[0]), 0)
 
 
-def _sound(stencil, triangle, n):
+def _sound(stencil, triangle, n, area: float):
     """``stencil`` (4 points) if its normal ``cross(s3 - s2, s1 - s0)`` is ``n``'s, else one on
     the mesh ``triangle`` (3, 3) it lies on, oriented to ``n``.
 
@@ -487,7 +498,7 @@ def _sound(stencil, triangle, n):
     at all, which at a corner would hand the contact the other face's normal."""
     m = np.cross(stencil[3] - stencil[2], stencil[1] - stencil[0])
     size = np.linalg.norm(m)
-    if size > 1e-3 * STENCIL_SIDE * STENCIL_WIDTH and np.dot(m, n) > (1 - 1e-6) * size:
+    if size > 1e-3 * area and np.dot(m, n) > (1 - 1e-6) * size:
         return stencil
     a, b, c = triangle
     if np.dot(np.cross(c - a, b - a), n) < 0:

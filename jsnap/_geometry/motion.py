@@ -24,10 +24,10 @@ __all__ = [
 ]
 
 
-def latching_stroke(plug_height: float, clearance: float, hook_height: float) -> float:
-    """Travel along -z that latches the preset plug: its top passes 0.3 mm below the retention
-    edge (``hook_height`` = z_top - L of the cantilever), mm."""
-    return clearance + hook_height + plug_height + 0.3
+def latching_stroke(plug_height: float, clearance: float, hook_height: float, overshoot: float = 0.3) -> float:
+    """Travel along -z that latches the preset plug: its top passes ``overshoot`` below the
+    retention edge (``hook_height`` = z_top - L of the cantilever), mm."""
+    return clearance + hook_height + plug_height + overshoot
 
 
 def straight_insertion(start, speed: float, stroke: float, withdraw: bool, dt: float) -> np.ndarray:

@@ -12,15 +12,25 @@ AGPL and fTetWild has no wheel. Everything is converted to mm; every problem rai
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from jsnap._geometry.errors import SceneError
-from jsnap._geometry.mesh import MeshQualityError, TetMesh, check_quality, signed_volumes
+from jsnap._geometry.mesh import TET_FACES, MeshQualityError, TetMesh, check_quality, signed_volumes
+from jsnap._geometry.size import wall_thickness
 
-__all__ = ["UNITS", "PartError", "RigidSurface", "fixed_nodes", "load_part", "load_rigid"]
+__all__ = [
+    "UNITS",
+    "PartError",
+    "RigidSurface",
+    "fixed_nodes",
+    "load_part",
+    "load_rigid",
+    "part_wall_thickness",
+]
 
 # Millimetres per unit of the files' coordinates.
 UNITS = {"mm": 1.0, "m": 1000.0, "in": 25.4}
@@ -182,6 +192,56 @@ def _check_fixed(points: np.ndarray, cells: np.ndarray, fixed: np.ndarray, path:
             )
 
 
+def part_wall_thickness(path, units: str = "mm") -> float:
+    """The wall thickness (:func:`jsnap._geometry.size.wall_thickness`, mm) of the deformable
+    part's file: a closed surface, or the boundary of its tetrahedra. Measured once per version
+    of the file (its path, size and modification time).
+
+    Raises:
+        PartError: as :func:`load_part` for a file it cannot read.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise PartError(f"part.mesh = {str(path)!r}: no such file")
+    stat = path.stat()
+    return _wall_of(str(path.resolve()), stat.st_size, stat.st_mtime_ns, units)
+
+
+@functools.lru_cache(maxsize=32)
+def _wall_of(path: str, size: int, mtime_ns: int, units: str) -> float:
+    key = "part.mesh"
+    file = Path(path)
+    if file.suffix.lower() in SURFACE_SUFFIXES:
+        surface = _read_surface(file, key, units)
+        return wall_thickness(surface.vertices, surface.faces)
+    points, cells, _ = _read_tets(file, key, units)
+    flip = signed_volumes(points, cells) < 0
+    cells = np.where(flip[:, None], cells[:, [0, 2, 1, 3]], cells)
+    faces = cells[:, TET_FACES].reshape(-1, 3)
+    _, first, counts = np.unique(np.sort(faces, axis=1), axis=0, return_index=True, return_counts=True)
+    return wall_thickness(points, faces[np.sort(first[counts == 1])])
+
+
+def _read_tets(path: Path, key: str, units: str):
+    """(points in mm, corner cells (m, 4)) of a tetrahedral mesh file, and the meshio mesh."""
+    import meshio
+
+    try:
+        mesh = meshio.read(path)
+    except Exception as err:  # meshio raises many types for unreadable files
+        raise PartError(f"{key} = {str(path)!r}: cannot read it as a mesh ({err})") from None
+    blocks = [b for b in mesh.cells if b.type in ("tetra", "tetra10")]
+    if not blocks:
+        kinds = ", ".join(sorted({b.type for b in mesh.cells})) or "none"
+        raise PartError(
+            f"{key} = {str(path)!r}: no tetrahedra in the file (cells: {kinds}); give tetrahedra "
+            "or a closed surface (STL/OBJ/PLY) to be tet-meshed"
+        )
+    points = np.asarray(mesh.points, np.float64)[:, :3] * UNITS[units]
+    cells = np.concatenate([np.asarray(b.data, np.int64)[:, :4] for b in blocks])
+    return points, cells, mesh
+
+
 def load_part(
     path, *, units: str = "mm", fixed: str | None = None, fixed_box=None, mesh_size: float
 ) -> TetMesh:
@@ -206,7 +266,6 @@ def load_part(
         raise PartError(f"{key} = {str(path)!r}: no such file")
     if (fixed is None) == (fixed_box is None):
         raise PartError("[part] needs exactly one of part.fixed (a group name) and part.fixed_box")
-    scale = UNITS[units]
     if path.suffix.lower() in SURFACE_SUFFIXES:
         if fixed is not None:
             raise PartError(
@@ -216,21 +275,7 @@ def load_part(
         points, cells = _tet_mesh_surface(surface, mesh_size, path, key)
         mask = None
     else:
-        import meshio
-
-        try:
-            mesh = meshio.read(path)
-        except Exception as err:  # meshio raises many types for unreadable files
-            raise PartError(f"{key} = {str(path)!r}: cannot read it as a mesh ({err})") from None
-        blocks = [b for b in mesh.cells if b.type in ("tetra", "tetra10")]
-        if not blocks:
-            kinds = ", ".join(sorted({b.type for b in mesh.cells})) or "none"
-            raise PartError(
-                f"{key} = {str(path)!r}: no tetrahedra in the file (cells: {kinds}); give tetrahedra "
-                "or a closed surface (STL/OBJ/PLY) to be tet-meshed"
-            )
-        points = np.asarray(mesh.points, np.float64)[:, :3] * scale
-        cells = np.concatenate([np.asarray(b.data, np.int64)[:, :4] for b in blocks])
+        points, cells, mesh = _read_tets(path, key, units)
         mask = None
         if fixed is not None:
             mask = _named_nodes(mesh, fixed, points.shape[0])

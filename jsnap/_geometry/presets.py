@@ -50,6 +50,7 @@ from jsnap._geometry.cantilever import Cantilever, mesh_cantilever
 from jsnap._geometry.mesh import TetMesh, check_quality
 from jsnap._geometry.motion import latching_stroke
 from jsnap._geometry.plug import Plug
+from jsnap._geometry.size import OVERSHOOT, PLUG_DEPTH_MARGIN, preset_ratio
 
 __all__ = [
     "PRESETS",
@@ -380,7 +381,7 @@ def default_rigid(kind: str, c: Mapping, plug: Mapping) -> Plug:
         x = hook.h_tip + 0.5 * thick
     else:
         thick, x = plug["thickness"] or c["gap"], 0.0
-    depth = hook.width + (c["spacing"] if kind == "box_lid" else 0.0) + 1.0
+    depth = hook.width + (c["spacing"] if kind == "box_lid" else 0.0) + PLUG_DEPTH_MARGIN * preset_ratio(c)
     half = np.array([thick, plug["width"] or depth, plug["height"]]) / 2
     if kind != "box_lid":
         return Plug(half, plug["fillet"], [x, 0.0, hook.z_top + plug["clearance"] + half[2]])
@@ -392,16 +393,18 @@ def default_rigid(kind: str, c: Mapping, plug: Mapping) -> Plug:
 
 def default_stroke(kind: str, c: Mapping, plug: Mapping, rigid: Plug) -> float:
     """The preset's default travel along -z, mm: the rigid part ``rigid`` (its default) latches
-    every hook, its top passing 0.3 mm below the retention faces (for the box lid, its tilted
-    top face at the far edge of the hooks it reaches last)."""
+    every hook, its top passing 0.3 mm (times the wall ratio) below the retention faces (for the
+    box lid, its tilted top face at the far edge of the hooks it reaches last)."""
     hook = hook_of(c)
     if kind != "box_lid":
-        return latching_stroke(plug["height"], plug["clearance"], hook.z_top - hook.length)
+        return latching_stroke(
+            plug["height"], plug["clearance"], hook.z_top - hook.length, OVERSHOOT * preset_ratio(c)
+        )
     th = np.radians(c["tilt"])
     y_far = 0.5 * (c["spacing"] + c["width"])
     along = (y_far + rigid.half[2] * np.sin(th)) / np.cos(th)  # in the box's own frame
     top = rigid.start[2] + along * np.sin(th) + rigid.half[2] * np.cos(th)
-    return float(top - (c["length"] - 0.3))
+    return float(top - (c["length"] - OVERSHOOT * preset_ratio(c)))
 
 
 def generate(kind: str, c: Mapping, plug: Mapping, mesh_size: float) -> Preset:

@@ -30,7 +30,9 @@ import numpy as np
 from jsnap._geometry.cantilever import Cantilever
 from jsnap._geometry.errors import SceneError, SceneWarning
 from jsnap._geometry.motion import read_pose_csv
+from jsnap._geometry.part import PartError, part_wall_thickness
 from jsnap._geometry.presets import connector_features, default_rigid, default_stroke, hook_of
+from jsnap._geometry.size import GEOMETRIC, REFERENCE_WALL, SIZED, preset_ratio, size_of
 
 __all__ = [
     "MIN_STEPS",
@@ -422,7 +424,7 @@ SCHEMA: dict[str, dict[str, Key]] = {
     "plug": {
         "fillet": _nonneg("mm", 0.1, "edge radius of the preset rigid part (a rounded block)"),
         "thickness": _pos("mm", None, "x extent; default 1.25 undercut"),
-        "width": _pos("mm", None, "y extent; default connector width + 1"),
+        "width": _pos("mm", None, "y extent; default connector width + 1 mm × wall ratio"),
         "height": _pos("mm", 0.5, "z extent"),
         "clearance": _nonneg("mm", 0.02, "start gap above the hook's top", internal=True),
     },
@@ -436,7 +438,9 @@ SCHEMA: dict[str, dict[str, Key]] = {
         ),
         "speed": _pos("mm/s", 10.0, "insertion speed along motion.direction"),
         "stroke": _pos(
-            "mm", None, "travel; default (preset plug): the rigid part latches 0.3 mm below the hook"
+            "mm",
+            None,
+            "travel; default (preset plug): the rigid part latches 0.3 mm × wall ratio below the hook",
         ),
         "withdraw": Key(bool, False, doc="return to the start after the stroke"),
         "waypoints": Key(
@@ -581,11 +585,16 @@ class Scene:
         source: where the scene came from (a path, or ``"<dict>"``).
         given: the ``"section.key"`` names that the file (or mapping) and later ``replace``
             calls set, as against the defaults filled in (see :meth:`is_set`).
+        size: the part's size, which scales the defaults that are lengths (the keys of
+            ``jsnap._geometry.size.SIZED`` not given are their value there times it), from a
+            preset's ``connector.thickness`` over the shipped preset's or a part file's wall
+            thickness over the shipped hook's 1.2 mm (``jsnap._geometry.size``).
     """
 
     sections: Mapping[str, Mapping[str, Any]]
     source: str = field(default="<dict>", compare=False)
     given: frozenset[str] = field(default=frozenset(), compare=False)
+    size: float = 1.0
 
     def __getitem__(self, section: str) -> Mapping[str, Any]:
         return self.sections[section]
@@ -672,9 +681,34 @@ class Scene:
             sections[section] = MappingProxyType(values)
         if given is None:
             given = {f"{s}.{k}" for s, table in raw.items() if isinstance(table, Mapping) for k in table}
-        scene = cls(MappingProxyType(sections), source, frozenset(before | set(given)))
+        given = frozenset(before | set(given))
+        scene = cls(MappingProxyType(sections), source, given)
+        _check_files(scene)
+        scene = _sized(scene)
         _check_consistency(scene)
         return scene
+
+
+def _sized(scene: Scene) -> Scene:
+    """``scene`` with its size, and the keys of ``GEOMETRIC`` and ``SIZED`` it did not give at
+    its wall ratio and its size (``jsnap._geometry.size``)."""
+    c = scene["connector"]
+    if c:
+        ratio = preset_ratio(c)
+    else:
+        try:
+            ratio = part_wall_thickness(scene_file(scene, "part.mesh"), scene["part"]["units"]) / REFERENCE_WALL
+        except PartError:
+            ratio = 1.0  # a file that cannot be used: jsnap.build says why
+    size = size_of(ratio)
+    sections = {k: dict(v) for k, v in scene.sections.items()}
+    for table, scale in ((GEOMETRIC, ratio), (SIZED, size)):
+        for dotted, value in table.items():
+            section, key = _split(dotted)
+            if key in sections[section] and not scene.is_set(dotted):
+                sections[section][key] = value * scale
+    frozen = MappingProxyType({k: MappingProxyType(v) for k, v in sections.items()})
+    return Scene(frozen, scene.source, scene.given, size)
 
 
 def _connector_keys(supplied: Mapping[str, Any], internal: bool) -> dict[str, Key]:
@@ -849,7 +883,6 @@ def _check_annular(scene: Scene) -> None:
 def _check_consistency(scene: Scene) -> None:
     """Checks that involve several keys: geometry that cannot be built or cannot be modelled,
     plug sizes, a motion too short for the time step, elements too coarse for the features."""
-    _check_files(scene)
     c = scene["connector"]
     if c:
         try:
@@ -897,7 +930,7 @@ def _check_consistency(scene: Scene) -> None:
             f"= {thinnest:g} mm, the thinnest feature, leave it unresolved; use solver.mesh_size <= "
             f"{thinnest:g} mm"
         )
-    if s["mesh_size"] > thinnest:
+    if s["mesh_size"] > thinnest * (1 + 1e-9):  # equal but for rounding is not larger
         warnings.warn(
             f"solver.mesh_size = {s['mesh_size']!r} is larger than connector.{name} = {thinnest:g} mm, the "
             "thinnest feature: fewer than one element across it (a coarse, stiff model)",
