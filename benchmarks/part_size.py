@@ -38,7 +38,7 @@ from _common import write_result
 import jsnap
 from jsnap._geometry.cantilever import mesh_cantilever
 from jsnap._geometry.presets import default_rigid
-from jsnap._geometry.scene import CONNECTORS, SCHEMA, connector_geometry
+from jsnap._geometry.scene import connector_geometry, similar_scene
 
 jsnap.configure_xla_cpu()
 
@@ -46,19 +46,6 @@ OUT = Path(__file__).resolve().parent / "results"
 PRESET_SCALES = (1 / 16, 1 / 8, 1 / 4, 1.0, 4.0, 8.0, 16.0)
 FILE_SCALES = (0.1, 1.0, 10.0)
 FRICTIONS = (0.0, 0.3)
-
-
-def scaled(scene: jsnap.Scene, k: float) -> jsnap.Scene:
-    """Every length the scene gives times k, every time times k."""
-    out = {}
-    for dotted in scene.given:
-        section, key = dotted.split(".")
-        table = CONNECTORS[scene["connector"]["type"]] if section == "connector" else SCHEMA[section]
-        spec, value = table.get(key), scene.get(dotted)
-        factor = {"mm": k, "s": k, "1/s": 1 / k}.get(spec.unit if spec else None)
-        if factor is not None and isinstance(value, float):
-            out[dotted] = value * factor
-    return scene.replace(out)
 
 
 def run(scene: jsnap.Scene, k: float) -> dict:
@@ -112,7 +99,7 @@ def files_scene(d: Path, k: float) -> jsnap.Scene:
 
 def main() -> int:
     base = jsnap.load_scene().replace({"solver.dtype": "float64"})
-    preset = [run(scaled(base, k), k) for k in PRESET_SCALES]
+    preset = [run(similar_scene(base, k), k) for k in PRESET_SCALES]
     compare(preset)
     scene = jsnap.load_scene()
     mesh = mesh_cantilever(connector_geometry(scene), 0.8)

@@ -164,12 +164,18 @@ _PLANAR = 1e-7
 _FLOAT32_ROUNDING = 4 * 2.0**-24
 
 
+def _tolerance(base: float, size: float, points: np.ndarray) -> float:
+    """A length tolerance, mm: ``base`` at the part's ``size``, plus the float32 rounding of the
+    part's coordinates ``points``."""
+    return base * size + _FLOAT32_ROUNDING * float(np.max(np.abs(points)))
+
+
 def _candidate_pairs(tri: np.ndarray, X: np.ndarray, on_face: float) -> tuple[np.ndarray, np.ndarray]:
     """(point, face) index pairs (k,), (k,) of the points X (P, 3) and the triangles tri (F, 3, 3)
     that may lie on one another: the point within the largest circumradius about the centroid
     of the face (any point of a triangle is within that of its centroid), with a margin well
-    above ``on_face`` (:data:`_ON_FACE` at the part's size). A k-d tree of the centroids keeps this O(P log F) in time and O(P)
-    in memory, where testing every point against every face took P x F x 3 floats."""
+    above the on-face tolerance ``on_face``. A k-d tree of the centroids keeps this O(P log F) in
+    time and O(P) in memory, where testing every point against every face took P x F x 3 floats."""
     from scipy.spatial import cKDTree
 
     centre = tri.mean(axis=1)
@@ -197,7 +203,7 @@ def locate_on_faces(asm: Assembly, faces: np.ndarray, X: np.ndarray, normals: np
     e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
     nrm = np.cross(e1, e2)
     area2 = np.linalg.norm(nrm, axis=1)
-    on_face = _ON_FACE * size + _FLOAT32_ROUNDING * float(np.max(np.abs(pts)))
+    on_face = _tolerance(_ON_FACE, size, pts)
     p, f = _candidate_pairs(tri, X, on_face)
     d = X[p] - tri[f, 0]  # one row per (point, face) pair near each other
     plane = np.abs(np.einsum("kd,kd->k", d, nrm[f])) / area2[f]
@@ -353,7 +359,7 @@ def surface_samples(mesh: TetMesh, lo, hi, direction, spacing: float, width_spac
     label, neighbour = _patches(pts, faces, unit, flat)
     scale = float(np.linalg.norm(np.ptp(pts, axis=0)))
     tol = 1e-9 * scale
-    planar = _PLANAR * size + _FLOAT32_ROUNDING * float(np.max(np.abs(pts)))
+    planar = _tolerance(_PLANAR, size, pts)
     # Faces joined through slowly turning neighbours (a curved surface) are not one plane:
     # each of those is its own patch.
     for p in np.unique(label):
@@ -490,8 +496,9 @@ def _triangle_at(P2, u: float, v: float, tol: float) -> int:
 
 
 def _sound(stencil, triangle, n, area: float):
-    """``stencil`` (4 points) if its normal ``cross(s3 - s2, s1 - s0)`` is ``n``'s, else one on
-    the mesh ``triangle`` (3, 3) it lies on, oriented to ``n``.
+    """``stencil`` (4 points) if its normal ``cross(s3 - s2, s1 - s0)`` is ``n``'s (and its
+    cross product above a thousandth of ``area``, the full stencil's), else one on the mesh
+    ``triangle`` (3, 3) it lies on, oriented to ``n``.
 
     A line that meets its patch only at a vertex (a curved surface's facets are patches of one
     triangle each, and a line may just touch one) has arms of zero length along it: no normal

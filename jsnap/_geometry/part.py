@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from jsnap._geometry.errors import SceneError
-from jsnap._geometry.mesh import TET_FACES, MeshQualityError, TetMesh, check_quality, signed_volumes
+from jsnap._geometry.mesh import MeshQualityError, TetMesh, check_quality, signed_volumes
 from jsnap._geometry.size import wall_thickness
 
 __all__ = [
@@ -217,9 +217,7 @@ def _wall_of(path: str, size: int, mtime_ns: int, units: str) -> float:
     points, cells, _ = _read_tets(file, key, units)
     flip = signed_volumes(points, cells) < 0
     cells = np.where(flip[:, None], cells[:, [0, 2, 1, 3]], cells)
-    faces = cells[:, TET_FACES].reshape(-1, 3)
-    _, first, counts = np.unique(np.sort(faces, axis=1), axis=0, return_index=True, return_counts=True)
-    return wall_thickness(points, faces[np.sort(first[counts == 1])])
+    return wall_thickness(points, TetMesh(points, cells, np.zeros(0)).boundary_faces())
 
 
 def _read_tets(path: Path, key: str, units: str):

@@ -585,10 +585,11 @@ class Scene:
         source: where the scene came from (a path, or ``"<dict>"``).
         given: the ``"section.key"`` names that the file (or mapping) and later ``replace``
             calls set, as against the defaults filled in (see :meth:`is_set`).
-        size: the part's size, which scales the defaults that are lengths (the keys of
-            ``jsnap._geometry.size.SIZED`` not given are their value there times it), from a
-            preset's ``connector.thickness`` over the shipped preset's or a part file's wall
-            thickness over the shipped hook's 1.2 mm (``jsnap._geometry.size``).
+        size: the part's size, which scales the contact's resolution defaults (the keys of
+            ``jsnap._geometry.size.SIZED`` not given are their value there times it); it follows
+            the wall ratio (a preset's ``connector.thickness`` over the shipped preset's, a part
+            file's wall over the shipped hook's 1.2 mm), which scales the geometric defaults
+            (``GEOMETRIC``) itself (``jsnap._geometry.size``).
     """
 
     sections: Mapping[str, Mapping[str, Any]]
@@ -709,6 +710,25 @@ def _sized(scene: Scene) -> Scene:
                 sections[section][key] = value * scale
     frozen = MappingProxyType({k: MappingProxyType(v) for k, v in sections.items()})
     return Scene(frozen, scene.source, scene.given, size)
+
+
+def similar_scene(scene: Scene, k: float, changes: Mapping[str, Any] | None = None) -> Scene:
+    """The dynamically similar scene: every length ``scene`` gives (a key in mm) times ``k``,
+    every time (in s) times ``k`` and every rate (in 1/s) over it, then ``changes``. Its masses
+    go as ``k^3``, accelerations as ``1/k`` and stiffnesses as ``k``: every force is ``k^2``
+    times the original's, step for step, if nothing in jsnap hides a length. A preset's scene
+    only (a part file's coordinates and waypoints are not scaled)."""
+    if not scene["connector"] or scene["motion"]["waypoints"] is not None or scene["motion"]["trajectory"]:
+        raise ValueError("similar_scene scales a preset's scene with a straight motion only")
+    out = {}
+    for dotted in scene.given:
+        section, key = _split(dotted)
+        table = CONNECTORS[scene["connector"]["type"]] if section == "connector" else SCHEMA[section]
+        spec, value = table.get(key), scene.get(dotted)
+        factor = {"mm": k, "s": k, "1/s": 1 / k}.get(spec.unit if spec else None)
+        if factor is not None and isinstance(value, float):
+            out[dotted] = value * factor
+    return scene.replace({**out, **(changes or {})})
 
 
 def _connector_keys(supplied: Mapping[str, Any], internal: bool) -> dict[str, Key]:
