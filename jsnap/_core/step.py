@@ -306,14 +306,18 @@ def _contact_problem(
 
 def _buckets(capacity: int) -> tuple[int, ...]:
     """Problem sizes (slots) the solve is cut to: a quarter (or, when that is below 8, half) of
-    ``capacity``, half of it when that is at least 64 slots, and all of it. Each size is one
-    more compiled copy of the solver (~1.5 s more to compile a rollout). Half of a 64-slot
-    buffer gained nothing measurable on the default scene, where a small matvec costs its
-    kernel launch; half of 128 doubles the two-hook clip's APGD step rate (60 active slots at
-    its peak: the matvecs shrink fourfold; ``benchmarks/two_hook_clip.py``)."""
+    ``capacity``, an eighth of it when that is at least 32 slots, half of it when that is at
+    least 64 slots, and all of it. Each size is one more compiled copy of the solver (~1.5 s
+    more to compile a rollout). Half of a 64-slot buffer gained nothing measurable on the
+    default scene, where a small matvec costs its kernel launch; half of 128 doubles the
+    two-hook clip's APGD step rate (60 active slots at its peak: the matvecs shrink fourfold;
+    ``benchmarks/two_hook_clip.py``); an eighth of 256 lets the box lid solve its two fifths
+    of steps with at most 32 active slots on a 96-row Delassus matrix instead of 192
+    (``benchmarks/box_lid.py``)."""
     small = next((k for k in (capacity // 4, capacity // 2) if k >= 8), capacity)
+    eighth = capacity // 8 if capacity // 8 >= 32 else capacity
     half = capacity // 2 if capacity // 2 >= 64 else capacity
-    return tuple(sorted({small, half, capacity}))
+    return tuple(sorted({eighth, small, half, capacity}))
 
 
 def _solve(model: Model, op, prob: ContactProblem):
