@@ -40,8 +40,11 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import time
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 from _common import (
     calculix_row,
@@ -56,6 +59,7 @@ from _common import (
 
 import jsnap
 from jsnap._apps.simulate import design_guide_force
+from jsnap._core.contact import SPG, solve_admm, solve_apgd, solve_spg
 from jsnap._geometry.scene import default_scene_path
 
 jsnap.configure_xla_cpu()
@@ -177,6 +181,89 @@ def rate_against_order(base, rounds: int = 5) -> dict:
     }
 
 
+# Section 6: the solvers the recorded problems are solved again by (SPG is the scene's).
+SOLVE = {"spg": solve_spg, "apgd": solve_apgd, "admm": solve_admm}
+
+
+def recorded_problems(model) -> list:
+    """The cone problems ``(W, q, mu, mask, gamma0)`` of ``model``'s rollout with an active
+    slot, as its SPG solver received them (device arrays, in the rollout's dtype)."""
+    if not isinstance(model.contact.solver, SPG):
+        name = type(model.contact.solver).__name__
+        raise ValueError(f"the box lid's scene solves by SPG; this model uses {name}")
+    recs = []
+    original = SPG.algorithm
+
+    def recorded(W, q, mu, mask, *, max_iters, tol, gamma0=None, **kw):
+        sol = original(W, q, mu, mask, max_iters=max_iters, tol=tol, gamma0=gamma0, **kw)
+
+        def keep(*a):
+            if np.asarray(a[3]).any():  # the branches the step did not take see no active slot
+                recs.append(tuple(jnp.asarray(x) for x in a))
+
+        jax.debug.callback(keep, W, q, mu, mask, gamma0)
+        return sol
+
+    # The algorithm is looked up when the step is traced: this rollout's compile, which the
+    # jit cache would skip for a model compiled before.
+    jax.clear_caches()
+    SPG.algorithm = staticmethod(recorded)
+    try:
+        jax.block_until_ready(jsnap.rollout(model).energy)
+    finally:
+        SPG.algorithm = staticmethod(original)
+        # Later rollouts of the same model would hit the jit cache, callback included.
+        jax.clear_caches()
+    return recs
+
+
+def solve_alone(model, rounds: int = 5) -> dict:
+    """Section 6 of the module docstring: per solver, the median over ``rounds`` of the seconds
+    to solve every recorded problem of ``model``'s rollout, per rollout step."""
+    recs = recorded_problems(model)
+    steps = model.motion.shape[0] - 1
+    cap, tol = model.contact.solver.max_iters, model.contact.solver.tol
+
+    def timed_loop(f):
+        for size in {r[0].shape[0] for r in recs}:  # compile every problem size first
+            jax.block_until_ready(f(*next(r for r in recs if r[0].shape[0] == size)))
+        times = []
+        for _ in range(rounds):
+            t0 = time.perf_counter()
+            outs = [f(*r) for r in recs]
+            jax.block_until_ready(outs)
+            times.append(time.perf_counter() - t0)
+        return float(np.median(times)), outs
+
+    empty, _ = timed_loop(jax.jit(lambda W, q, mu, mask, g0: q[0] + W[0, 0]))
+    out = {
+        "solves": len(recs),
+        "steps": steps,
+        "tolerance": tol,
+        "iteration_cap": cap,
+        "rounds": rounds,
+        "call_overhead_us_per_step": 1e6 * empty / steps,
+    }
+    for name, solve in SOLVE.items():
+        f = jax.jit(
+            lambda W, q, mu, mask, g0, solve=solve: solve(
+                W, q, mu, mask, max_iters=cap, tol=tol, gamma0=g0, differentiable=False
+            )
+        )
+        seconds, sols = timed_loop(f)
+        its = np.array([int(s.iterations) for s in sols])
+        out[name] = {
+            "us_per_step": 1e6 * seconds / steps,
+            "us_per_step_less_call_overhead": 1e6 * (seconds - empty) / steps,
+            "mean_iterations": float(its.mean()),
+            "capped": int((its >= cap).sum()),
+            "max_residual": float(max(float(s.residual) for s in sols)),
+        }
+        print(f"  solve alone, {name}:", out[name], flush=True)
+    out["load_average"] = os.getloadavg()[0]
+    return out
+
+
 def compare(acc: dict, tilt: float, mu: float) -> None:
     """``acc["calculix"]``: the case's curves against CalculiX's, where CalculiX ran the case."""
     ref = REFS.get((tilt, mu))
@@ -272,8 +359,10 @@ def main(argv=None) -> int:
 def timed(base) -> dict:
     """Section 4 and 5 of the module docstring: the speed rows, in one process."""
     rows = speed(load_scene(COARSE, base), 5, full_runs=1)
-    rows["shipped_reduced_float32"] = timing_row(jsnap.build(base), 5)
+    shipped = jsnap.build(base)
+    rows["shipped_reduced_float32"] = timing_row(shipped, 5)
     rows["rate_against_order"] = rate_against_order(base)
+    rows["solve_alone"] = solve_alone(shipped)
     return rows
 
 
@@ -332,7 +421,7 @@ def plot(out, curves):
             title=f"box lid, box tilted {tilt:g} deg",
         )
         a.legend(fontsize=7)
-    plot_speed(ax[2], {k: v for k, v in out["speed"].items() if k != "rate_against_order"})
+    plot_speed(ax[2], {k: v for k, v in out["speed"].items() if k not in ("rate_against_order", "solve_alone")})
     order = out["speed"].get("rate_against_order")
     if order is not None:
         r = np.array([row["dof"] for row in order["rows"].values()])
@@ -349,6 +438,11 @@ def plot(out, curves):
             label="least-squares line",
         )
         ax[3].axhline(1000, color="k", ls="--", lw=0.8, label="1 kHz")
+        alone = out["speed"].get("solve_alone")
+        for name, ls in (("spg", "-"), ("admm", ":")) if alone else ():
+            us = alone[name]["us_per_step_less_call_overhead"]
+            label = f"contact solve alone ({name.upper()}): {us:.0f} us"
+            ax[3].axhline(us, color="C3", ls=ls, lw=0.8, label=label)
         ax[3].set(
             xlim=(0, None),
             ylim=(0, None),
