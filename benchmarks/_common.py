@@ -206,6 +206,40 @@ def speed(scene, runs: int, full_runs: int | None = None) -> dict:
     return rows
 
 
+def recorded_problems(model, solver_class, active_only: bool = False) -> list:
+    """The cone problems ``(W, q, mu, mask, gamma0)`` of ``model``'s rollout as its contact
+    solver (of type ``solver_class``) received them: device arrays in the rollout's dtype, one
+    per solve, warm starts included (a ``jax.debug.callback``). ``active_only``: only the solves
+    with an active slot (the steps without contact solve an empty problem)."""
+    if not isinstance(model.contact.solver, solver_class):
+        name = type(model.contact.solver).__name__
+        raise ValueError(f"the model solves its contact by {name}, not {solver_class.__name__}")
+    recs = []
+    original = solver_class.algorithm
+
+    def keep(*a):
+        if not active_only or np.asarray(a[3]).any():
+            recs.append(tuple(jnp.asarray(x) for x in a))
+
+    def recorded(W, q, mu, mask, *, max_iters, tol, gamma0=None, **kw):
+        sol = original(W, q, mu, mask, max_iters=max_iters, tol=tol, gamma0=gamma0, **kw)
+        jax.debug.callback(keep, W, q, mu, mask, gamma0)
+        return sol
+
+    # The algorithm is the solver component's class attribute, looked up when the step is
+    # traced: a model compiled before would hit the jit cache and skip it.
+    jax.clear_caches()
+    solver_class.algorithm = staticmethod(recorded)
+    try:
+        jax.block_until_ready(jsnap.rollout(model).energy)
+    finally:
+        solver_class.algorithm = staticmethod(original)
+        # The same model later hits the jit cache: without this it would be timed with the
+        # callback in its program (measured: 2x slower per step, and no compile).
+        jax.clear_caches()
+    return recs
+
+
 def write_result(out: dict, path: Path) -> None:
     """``out`` as JSON at ``path``, stamped with the load average, the CPUs, the date and the
     code version."""

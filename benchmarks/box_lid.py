@@ -44,13 +44,13 @@ import time
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 from _common import (
     calculix_row,
     curve_stats,
     load_scene,
     plot_speed,
+    recorded_problems,
     scan_timing,
     speed,
     timing_row,
@@ -185,42 +185,10 @@ def rate_against_order(base, rounds: int = 5) -> dict:
 SOLVE = {"spg": solve_spg, "apgd": solve_apgd, "admm": solve_admm}
 
 
-def recorded_problems(model) -> list:
-    """The cone problems ``(W, q, mu, mask, gamma0)`` of ``model``'s rollout with an active
-    slot, as its SPG solver received them (device arrays, in the rollout's dtype)."""
-    if not isinstance(model.contact.solver, SPG):
-        name = type(model.contact.solver).__name__
-        raise ValueError(f"the box lid's scene solves by SPG; this model uses {name}")
-    recs = []
-    original = SPG.algorithm
-
-    def recorded(W, q, mu, mask, *, max_iters, tol, gamma0=None, **kw):
-        sol = original(W, q, mu, mask, max_iters=max_iters, tol=tol, gamma0=gamma0, **kw)
-
-        def keep(*a):
-            if np.asarray(a[3]).any():  # the branches the step did not take see no active slot
-                recs.append(tuple(jnp.asarray(x) for x in a))
-
-        jax.debug.callback(keep, W, q, mu, mask, gamma0)
-        return sol
-
-    # The algorithm is looked up when the step is traced: this rollout's compile, which the
-    # jit cache would skip for a model compiled before.
-    jax.clear_caches()
-    SPG.algorithm = staticmethod(recorded)
-    try:
-        jax.block_until_ready(jsnap.rollout(model).energy)
-    finally:
-        SPG.algorithm = staticmethod(original)
-        # Later rollouts of the same model would hit the jit cache, callback included.
-        jax.clear_caches()
-    return recs
-
-
 def solve_alone(model, rounds: int = 5) -> dict:
     """Section 6 of the module docstring: per solver, the median over ``rounds`` of the seconds
     to solve every recorded problem of ``model``'s rollout, per rollout step."""
-    recs = recorded_problems(model)
+    recs = recorded_problems(model, SPG, active_only=True)
     steps = model.motion.shape[0] - 1
     cap, tol = model.contact.solver.max_iters, model.contact.solver.tol
 

@@ -26,7 +26,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _common import FLOAT32, LIGHT, code_version, jitted_step, load_scene
+from _common import FLOAT32, LIGHT, code_version, jitted_step, load_scene, recorded_problems
 
 import jsnap
 from jsnap._core.contact import APGD, solve_admm, solve_apgd, solve_spg
@@ -55,26 +55,9 @@ def _scene(config, changes):
 
 def recorded_solves(config, tol=1e-6, cap=20000):
     """The APGD rollout's contact problems, solved again in float64 by each solver."""
-    recs = []
-    original = APGD.algorithm
-
-    def recorded(W, q, mu, mask, *, max_iters, tol, gamma0=None, **kw):
-        sol = original(W, q, mu, mask, max_iters=max_iters, tol=tol, gamma0=gamma0, **kw)
-        jax.debug.callback(
-            lambda *a: recs.append([np.asarray(x, np.float64) for x in a]), W, q, mu, mask, gamma0
-        )
-        return sol
-
-    # The algorithm is the solver component's class attribute, looked up when the step is
-    # traced: this model's first rollout.
-    APGD.algorithm = staticmethod(recorded)
-    try:
-        jax.block_until_ready(jsnap.rollout(jsnap.build(_scene(config, {}))).energy)
-    finally:
-        APGD.algorithm = staticmethod(original)
-        # The same model later hits the jit cache: without this it would be timed with the
-        # callback in its program (measured: 2x slower per step, and no compile).
-        jax.clear_caches()
+    recs = [
+        [np.asarray(x, np.float64) for x in r] for r in recorded_problems(jsnap.build(_scene(config, {})), APGD)
+    ]
     out = {"solves": len(recs), "tolerance": tol, "cap": cap}
     totals = {}
     for name, solve in SOLVE.items():
