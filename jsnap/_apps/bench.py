@@ -232,6 +232,19 @@ def _annular(d):
     )
 
 
+def _annular_spacing(d):
+    rows = {r["spacing_mm"]: r["full_float64"] for r in d["rows"]}
+    late = [r["averaged_over_calculix"][-1] for r in rows.values()]
+    rise = [x for r in rows.values() for x in r["averaged_over_calculix"][:-1]]
+    flagged = sum(r["flags"] != "ok" for r in rows.values())
+    return (
+        f"annular snap, frictionless, contact.spacing {min(rows):g}-{max(rows):g} mm: the force averaged "
+        f"over 0.05 mm is {min(rise):.3f}-{max(rise):.3f} x CalculiX's at {d['travels_mm'][0]:g} and "
+        f"{d['travels_mm'][1]:g} mm, {min(late):.2f}-{max(late):.2f} x at {d['travels_mm'][2]:g} mm; "
+        f"{flagged} of {len(rows)} spacings flagged"
+    )
+
+
 _LATCH_FACTORS = (("f_3d_beam", "beam theory"), ("f_root", "root gives way"), ("f_ramp", "ramp turned"))
 
 
@@ -594,6 +607,13 @@ BENCHMARKS = [
         "annular snap preset (a sector of the ring): reduced vs full vs CalculiX, design guide, speed",
         False,
         _annular,
+    ),
+    Bench(
+        "annular_spacing",
+        "the annular snap's force against the density of its contact candidates, against CalculiX",
+        False,
+        _annular_spacing,
+        timed=False,
     ),
     Bench(
         "gallery",
