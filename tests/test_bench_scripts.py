@@ -174,3 +174,33 @@ def test_annular_spacing_headline():
         assert abs(r["reduced_float32"]["peak_over_full"] - 1) < 0.01
         assert r["reduced_float32"]["rmse_rise_of_full_peak"] < 0.01
     assert "CalculiX" in _bench._annular_spacing(d)
+
+
+def test_part_size_headline():
+    """The committed size sweep on the shipped meshes: dimensional analysis (force over k^2
+    independent of k) holds within 1 % for the preset at every size and friction, the sizes
+    sampled alike give the same history, and each run's status and buffer are recorded."""
+    d = _load("part_size")
+    for r in d["preset"]:
+        for mu in (0.0, 0.3):
+            assert abs(r[f"peak_ratio_mu{mu}"] - 1) < 0.01, (r["k"], mu)
+            assert r[f"status_mu{mu}"] == "ok"
+            twin = [
+                v
+                for key, v in r.items()
+                if key.startswith("max_difference_pct_to_k") and key.endswith(f"mu{mu}")
+            ]
+            assert all(v < 1e-4 for v in twin), (r["k"], mu, twin)
+    files = {r["k"]: r for r in d["files"]}
+    assert abs(files[0.1]["peak_ratio_mu0.3"] - 1) < 0.03 and abs(files[10.0]["peak_ratio_mu0.0"] - 1) < 0.03
+    assert "files" in _bench._part_size(d)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="the file hook ten times larger at friction 0.3: after the snap its lip stays inside the "
+    "rigid part and the force runs away, unflagged (docs/validation.md, parts of other sizes)",
+)
+def test_part_size_large_file_hook_with_friction():
+    r = {c["k"]: c for c in _load("part_size")["files"]}[10.0]
+    assert abs(r["peak_ratio_mu0.3"] - 1) < 0.03 or r["status_mu0.3"] != "ok"

@@ -134,9 +134,21 @@ def _own_parts(d):
 def _part_size(d):
     rows = []
     for family, cases in (("preset", d["preset"]), ("files", d["files"])):
-        ratios = [c["peak_ratio_mu0.0"] for c in cases] + [c["peak_ratio_mu0.3"] for c in cases]
+        runs = [(c["k"], mu, c[f"peak_ratio_mu{mu}"], c[f"status_mu{mu}"]) for c in cases for mu in (0.0, 0.3)]
+        good = [r for _, _, r, _ in runs if abs(r - 1) <= 0.05]
         span = f"{cases[0]['k']:g}..{cases[-1]['k']:g}"
-        rows.append(f"{family} k = {span}: peak / k^2 {min(ratios):.3f}-{max(ratios):.3f} of k = 1")
+        text = f"{family} k = {span}: peak / k^2 {min(good):.3f}-{max(good):.3f} of k = 1"
+        off = [
+            f"k = {k:g}, mu {mu:g}: x{r:.3g} ({'flagged' if s != 'ok' else 'unflagged'})"
+            for k, mu, r, s in runs
+            if abs(r - 1) > 0.05
+        ]
+        flagged = sorted({f"{k:g}" for k, _, r, s in runs if s != "ok" and abs(r - 1) <= 0.05})
+        if flagged:
+            text += f" (flagged: k = {', '.join(flagged)})"
+        if off:
+            text += "; off by more than 5 %: " + ", ".join(off)
+        rows.append(text)
     return "; ".join(rows)
 
 
