@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jsnap
+from jsnap._core.status import ERRORS, NOT_CONVERGED, describe
 from jsnap._core.util import cast_floats
 from jsnap._geometry.scene import Scene, with_internal
 
@@ -113,6 +114,18 @@ def scan_timing(model, prepared, runs: int, controls=None):
         jax.block_until_ready(jsnap.rollout(model, prepared=prepared, controls=controls).energy)
         times.append(time.perf_counter() - t0)
     return res, first, times
+
+
+def moving_average(F, window: int) -> np.ndarray:
+    """The centred ``window``-point moving average of ``F``, the same length (the ends
+    averaged over the points there are)."""
+    k = np.ones(window)
+    return np.convolve(F, k, "same") / np.convolve(np.ones_like(F), k, "same")
+
+
+def run_status(res) -> str:
+    """``"ok"``, or what went wrong in a rollout (its error flags and the solver's warnings)."""
+    return describe(np.asarray(res.flags), ERRORS | NOT_CONVERGED)
 
 
 def curve_stats(F, travel, ref_F):

@@ -28,26 +28,18 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from _common import curve_stats, load_scene, write_result
+from _common import curve_stats, load_scene, moving_average, run_status, write_result
 from annular import REFS, SCENE
 
 import jsnap
 from jsnap._apps.simulate import ring_copies
-from jsnap._core.status import ERRORS, NOT_CONVERGED, describe
 
 jsnap.configure_xla_cpu()
 
 OUT = Path(__file__).parent / "results"
 SPACINGS = (0.04, 0.03, 0.025, 0.02, 0.015, 0.01)
 TRAVELS = (0.15, 0.20, 0.25)
-ALL = ERRORS | NOT_CONVERGED
 WINDOW = 5  # steps: 0.05 mm at the scene's 10 mm/s and 1 ms
-
-
-def averaged(F):
-    """The centred ``WINDOW``-point moving average of ``F`` (fewer points at the ends)."""
-    k = np.ones(WINDOW)
-    return np.convolve(F, k, "same") / np.convolve(np.ones_like(F), k, "same")
 
 
 def full_model_scene(scene):
@@ -69,8 +61,8 @@ def main() -> int:
         travel = np.asarray(full.travel)
         Ff = copies * np.asarray(full.insertion_force, np.float64)
         Fr = copies * np.asarray(red.insertion_force, np.float64)
-        ref = averaged(np.interp(travel, d["plug_travel_mm"], d["insertion_force_N"]))
-        avg = averaged(Ff)
+        ref = moving_average(np.interp(travel, d["plug_travel_mm"], d["insertion_force_N"]), WINDOW)
+        avg = moving_average(Ff, WINDOW)
         stats = curve_stats(Fr, travel, Ff)
         row = {
             "spacing_mm": spacing,
@@ -82,12 +74,12 @@ def main() -> int:
                 "averaged_over_calculix": [
                     float(np.interp(t, travel, avg) / np.interp(t, travel, ref)) for t in TRAVELS
                 ],
-                "flags": describe(np.asarray(full.flags), ALL),
+                "flags": run_status(full),
             },
             "reduced_float32": {
                 "peak_over_full": stats["peak_N"] / float(Ff.max()),
                 "rmse_rise_of_full_peak": stats["rmse_rise_of_full_peak"],
-                "flags": describe(np.asarray(red.flags), ALL),
+                "flags": run_status(red),
             },
         }
         for key, changes in (
@@ -99,7 +91,7 @@ def main() -> int:
             row[key] = {
                 "peak_N": float(F.max()),
                 "least_before_peak_N": float(F[: int(np.argmax(F)) + 1].min()),
-                "flags": describe(np.asarray(res.flags), ALL),
+                "flags": run_status(res),
             }
         row["full_float64"]["least_before_peak_N"] = float(Ff[: int(np.argmax(Ff)) + 1].min())
         rows.append(row)

@@ -49,6 +49,7 @@ from _common import (
     calculix_row,
     curve_stats,
     load_scene,
+    moving_average,
     plot_speed,
     recorded_problems,
     scan_timing,
@@ -98,8 +99,9 @@ WINDOW = 5
 
 
 def smoothed_peak(F) -> float:
-    """The largest ``WINDOW``-step moving average of ``F``."""
-    return float(np.convolve(F, np.ones(WINDOW) / WINDOW, mode="valid").max())
+    """The largest ``WINDOW``-step moving average of ``F`` (over whole windows only)."""
+    half = WINDOW // 2
+    return float(moving_average(np.asarray(F, np.float64), WINDOW)[half : len(F) - half].max())
 
 
 def pairs(model, res) -> dict:

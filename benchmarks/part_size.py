@@ -36,11 +36,10 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-from _common import write_result
+from _common import run_status, write_result
 
 import jsnap
 from jsnap._apps.simulate import run_sizing_buffer
-from jsnap._core.status import ERRORS, NOT_CONVERGED, describe
 from jsnap._geometry.cantilever import mesh_cantilever
 from jsnap._geometry.presets import default_rigid
 from jsnap._geometry.scene import connector_geometry, similar_scene
@@ -51,7 +50,6 @@ OUT = Path(__file__).resolve().parent / "results"
 PRESET_SCALES = (1 / 16, 1 / 8, 1 / 4, 1.0, 4.0, 8.0, 16.0)
 FILE_SCALES = (0.1, 1.0, 10.0)
 FRICTIONS = (0.0, 0.3)
-ALL = ERRORS | NOT_CONVERGED
 
 
 def run(scene: jsnap.Scene, k: float) -> dict:
@@ -72,7 +70,7 @@ def run(scene: jsnap.Scene, k: float) -> dict:
             scene, model, lambda m: jsnap.rollout(m, m.params.replace(friction=mu))
         )
         row[f"force_mu{mu}"] = (np.asarray(res.insertion_force) / k**2).tolist()
-        row[f"status_mu{mu}"] = describe(np.asarray(res.flags), ALL)
+        row[f"status_mu{mu}"] = run_status(res)
         row[f"capacity_mu{mu}"] = int(used.contact.capacity)
         row[f"widened_from_mu{mu}"] = widened_from
     print(f"k = {k:g}: size {scene.size:g}, {model.n_samples} points, {model.n_dof} coordinates", flush=True)
