@@ -317,7 +317,7 @@ def test_energy_creation_is_flagged(model):
         prepared = prepare(model)
         controls = jnp.asarray(model.trajectory()[1:], jnp.float64)
         out, xs, start = _run(model, prepared, controls, jnp.asarray(model.plug_start), False)
-        clean = _result(out, xs, start, prepared.valid, model.dt, model.axis)
+        clean = _result(out, xs, start, prepared.valid, model)
         assert not np.any(np.asarray(clean.flags) & status.ENERGY_CREATED)
         excess = np.asarray(out.energy - jnp.cumsum(out.work))
         assert excess.max() <= 1e-6 * np.abs(np.asarray(out.energy)).max()
@@ -325,10 +325,63 @@ def test_energy_creation_is_flagged(model):
         # The work so far, less what friction dissipated, less a tenth of the energy held.
         deficit = jnp.cumsum(out.work)[k] - 0.9 * out.energy[k]
         forged = eqx.tree_at(lambda o: o.work, out, out.work.at[k].add(-deficit))
-        flagged = _result(forged, xs, start, prepared.valid, model.dt, model.axis)
+        flagged = _result(forged, xs, start, prepared.valid, model)
     flags = np.asarray(flagged.flags)
     assert not np.any(flags[:k] & status.ENERGY_CREATED) and flags[k] & status.ENERGY_CREATED
     assert f"step {k + 1}: the deformable part gained more energy" in flagged.status()
+
+
+def test_deep_runs_flag_exactly_the_long_runs():
+    """The run-length rule against a plain loop over random histories (a batch axis first):
+    every step of a run of more than PENETRATION_STEPS steps deeper than the limit, from the
+    run's first step, and nothing else."""
+    from jsnap._core.rollout import PENETRATION_STEPS, _deep_runs
+
+    rng = np.random.default_rng(0)
+    pen = rng.choice([0.0, 1.0, 5.0], size=(40, 60), p=[0.15, 0.05, 0.8])
+    got = np.asarray(_deep_runs(jnp.asarray(pen), 2.0))
+    want = np.zeros_like(got)
+    for b, row in enumerate(pen):
+        k = 0
+        while k < row.size:
+            if row[k] > 2.0:
+                end = k
+                while end < row.size and row[end] > 2.0:
+                    end += 1
+                want[b, k:end] = end - k > PENETRATION_STEPS
+                k = end
+            else:
+                k += 1
+    assert want.any() and not want.all()
+    np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("stabilisation", [0.0, 0.8])
+def test_a_point_held_inside_the_rigid_part_is_flagged(model, stabilisation):
+    """The rigid part held still, 0.1 mm (5 contact spacings) into the arm's outer face. Without
+    stabilisation the contact holds velocities only: the part at rest stays put, the overlap
+    stays exactly 0.1 mm with no force, and the result is flagged from its first step. With
+    stabilisation the contact pushes the arm out (doing work, which the energy check flags)
+    and the overlap falls below the limit before the run is long enough to be flagged."""
+    from jsnap._core.rollout import penetration_depth
+
+    ct = model.contact
+    held = eqx.tree_at(lambda m: m.contact, model, type(ct)(ct.solver, ct.capacity, ct.margin, ct.compliance,
+                                                               stabilisation))  # fmt: skip
+    latched = np.asarray(model.trajectory())[-1]  # the rigid part's face on the arm's outer face
+    inside = latched - np.array([0.1, 0.0, 0.0])
+    res = jsnap.rollout(held, controls=np.repeat(inside[None], 20, 0), plug_start=inside)
+    pen, flags = np.asarray(res.penetration), np.asarray(res.flags)
+    assert pen[0] == pytest.approx(0.1, rel=1e-5)
+    assert penetration_depth(model) == pytest.approx(4 * 0.02)
+    if stabilisation == 0:
+        np.testing.assert_allclose(pen, 0.1, rtol=1e-5)
+        np.testing.assert_allclose(np.asarray(res.insertion_force), 0.0, atol=1e-6)
+        assert np.all(flags & status.DEEP_PENETRATION) and not res.ok
+        assert res.status().startswith("step 1: a point of the deformable part stayed inside the rigid part")
+    else:
+        assert pen[1] < penetration_depth(model) < pen[0]  # pushed out within a step
+        assert not np.any(flags & status.DEEP_PENETRATION)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -372,7 +425,10 @@ def test_cli_json_summary_is_strict_and_timings_apart(tmp_path, capsys):
     assert summary["compile_seconds"] > 0 and summary["build_seconds"] > 0
     assert json.loads((out / "summary.json").read_text(), parse_constant=no_constants)["status"] == "ok"
     header = (out / "forces.csv").read_text().splitlines()[0]
-    assert header.endswith("energy_Nmm,work_Nmm,friction_dissipation_Nmm,normal_dissipation_Nmm,flags")
+    assert header.endswith(
+        "energy_Nmm,work_Nmm,friction_dissipation_Nmm,normal_dissipation_Nmm,penetration_mm,flags"
+    )
+    assert summary["max_penetration_mm"] >= 0 and summary["max_penetration_resolutions"] < 4
     # Undamped: up to the peak the work went into the part's energy, friction and the normal forces.
     budget = summary["energy_to_peak"]
     assert budget["work_Nmm"] > 0 and budget["friction_dissipation_Nmm"] > 0

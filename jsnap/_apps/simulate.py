@@ -4,8 +4,8 @@ Outputs in the ``--out`` folder (checked before anything is built):
 
 - ``forces.csv``: per step, time, travel, insertion force, the base wrench (force and moment),
   the drive's wrench (force and moment), the rigid part's pose (centre and unit quaternion),
-  the energy, the step's work and what friction and the normal forces took, and the step's
-  status flags;
+  the energy, the step's work and what friction and the normal forces took, how deep the
+  deformable part went into the rigid part, and the step's status flags;
 - ``forces.png``: the force curves against travel and time;
 - ``vtu/socket.pvd`` with ``socket_*.vtu``: the deformed part for ParaView, with each element's
   largest principal strain and von Mises stress (cell data);
@@ -18,7 +18,8 @@ operator), ``compile_seconds`` (XLA), and ``steps_per_second`` of the compiled r
 A run whose contact buffer was left at its default size (``contact.capacity``) and dropped
 candidates is run again with a buffer that holds them (a warning says which capacity to set).
 A run whose result carries an error flag (non-finite values, energy created, dropped contacts,
-invalid parameters) writes its outputs, says what happened at which step, and exits with 1.
+invalid parameters, a point lost deep inside the rigid part) writes its outputs, says what
+happened at which step, and exits with 1.
 """
 
 from __future__ import annotations
@@ -251,6 +252,7 @@ def write_forces_csv(res, path: Path) -> Path:
             np.asarray(res.work),
             np.asarray(res.friction_dissipation),
             np.asarray(res.normal_dissipation),
+            np.asarray(res.penetration),
             np.asarray(res.flags),
         ]
     )
@@ -259,7 +261,7 @@ def write_forces_csv(res, path: Path) -> Path:
         "base_mx_Nmm,base_my_Nmm,base_mz_Nmm,coupling_fx_N,coupling_fy_N,coupling_fz_N,"
         "coupling_mx_Nmm,coupling_my_Nmm,coupling_mz_Nmm,rigid_x_mm,rigid_y_mm,rigid_z_mm,"
         "rigid_qw,rigid_qx,rigid_qy,rigid_qz,energy_Nmm,work_Nmm,friction_dissipation_Nmm,"
-        "normal_dissipation_Nmm,flags"
+        "normal_dissipation_Nmm,penetration_mm,flags"
     )
     np.savetxt(path, cols, delimiter=",", header=header, comments="", fmt="%.8g")
     return path
@@ -382,7 +384,7 @@ def simulate(args) -> int:
     import jax
 
     from jsnap._build.model import build_model
-    from jsnap._core.rollout import _check_controls, _whole
+    from jsnap._core.rollout import PENETRATION_DEPTH, _check_controls, _whole, penetration_depth
     from jsnap._core.step import prepare
     from jsnap._geometry.scene import load_scene
 
@@ -441,6 +443,8 @@ def simulate(args) -> int:
             f"the contact solve stopped above 100x contact.tolerance in {int(loose.sum())} of {F.size} steps "
             "(raise contact.iterations for a tighter solve)"
         )
+    pen = np.asarray(res.penetration)
+    resolution = penetration_depth(model) / PENETRATION_DEPTH
     budget, lost = energy_to_peak(res)
     if lost is not None:
         warnings.append(lost)
@@ -486,6 +490,10 @@ def simulate(args) -> int:
         # The default capacity the first run overflowed (None: the run was not repeated).
         "contact_capacity_widened_from": widened_from,
         "max_solver_residual": _finite(np.nanmax(residual)) if np.isfinite(residual).any() else None,
+        # The deepest any contact point went into the rigid part, mm, and that in contact
+        # resolutions (Result.penetration; DEEP_PENETRATION flags a run deeper than 4 of them).
+        "max_penetration_mm": _finite(np.nanmax(pen)) if np.isfinite(pen).any() else None,
+        "max_penetration_resolutions": _finite(np.nanmax(pen) / resolution) if np.isfinite(pen).any() else None,
         # Up to the peak insertion force, N mm (energy_to_peak).
         "energy_to_peak": budget,
         "outputs": {"csv": str(csv), "png": str(png), "pvd": str(pvd)},

@@ -29,6 +29,13 @@ __all__ = ["Result", "SimulationError", "progress_chunk", "rollout", "rollout_ba
 # forms stays below 1e-4 of it on the shipped scenes; a failed contact solve creates far more).
 ENERGY_RTOL = 1e-2
 
+# A point of the deformable part deeper inside the rigid part than PENETRATION_DEPTH times the
+# contact's resolution (the larger of its margin and its spacing) for more than PENETRATION_STEPS
+# steps in a row is flagged. A snap's spring-in goes deeper for a step or two, and the contact
+# pushes the point out; a point the contact lost stays in (docs/contact.md "Penetration").
+PENETRATION_DEPTH = 4.0
+PENETRATION_STEPS = 5
+
 
 class SimulationError(RuntimeError):
     """A rollout's result is not the physics asked for (see :meth:`Result.check`)."""
@@ -65,6 +72,12 @@ class Result(StepOutput):
             The midpoint rule's balance is exact: ``energy[k] - energy[k-1] = work[k] -
             friction_dissipation[k] - normal_dissipation[k]``, less what damping took (Rayleigh
             damping; a segmented part's interface dampers).
+        penetration: (n,) how deep the deformable part's deepest contact point lies inside the
+            rigid part at the start of the step, mm (0: none inside). The contact holds
+            velocities, so a point that a step carried in stays there until the part moves it
+            out: a snap's spring-in goes a few contact spacings deep for a step or two; a run of
+            more than ``PENETRATION_STEPS`` steps deeper than ``penetration_depth(model)`` is
+            flagged ``DEEP_PENETRATION``.
         plug: (n, 3) the rigid part's centre, mm.
         plug_rotation: (n, 4) its orientation, a unit quaternion (w, x, y, z).
         contact_force: (n, C, 3) force of the rigid part on the deformable part at each slot, N.
@@ -177,14 +190,39 @@ def _run(model: Model, prepared: Prepared, controls, plug_start, keep_x: bool):
     return out, xs, state.plug
 
 
-def _result(out: StepOutput, xs, start, valid, dt, axis) -> Result:
-    """Stack a rollout's outputs into a :class:`Result`: flag energy creation over the whole
-    history and, for invalid parameters, make every floating output NaN."""
+def _deep_runs(penetration, depth):
+    """(..., n) bool: the steps of each run of more than ``PENETRATION_STEPS`` consecutive steps
+    whose ``penetration`` (..., n) exceeds ``depth`` (mm), the whole run from its first step."""
+    n = penetration.shape[-1]
+    axis = penetration.ndim - 1
+    k = jnp.arange(n)
+    deep = penetration > depth
+    last_shallow = jax.lax.cummax(jnp.where(deep, -1, k), axis=axis)  # at or before each step
+    next_shallow = jax.lax.cummin(jnp.where(deep, n, k), axis=axis, reverse=True)  # at or after it
+    return deep & (next_shallow - last_shallow - 1 > PENETRATION_STEPS)
+
+
+def penetration_depth(model: Model) -> float:
+    """The depth (mm) beyond which a point's penetration into the rigid part is deep:
+    ``PENETRATION_DEPTH`` times the larger of the contact's margin and its spacing."""
+    return PENETRATION_DEPTH * max(float(model.contact.margin), float(model.samples.spacing))
+
+
+def _result(out: StepOutput, xs, start, valid, model: Model) -> Result:
+    """Stack a rollout's outputs into a :class:`Result`: flag energy creation and lasting deep
+    penetration over the whole history and, for invalid parameters, make every floating output
+    NaN."""
     dtype = out.energy.dtype
+    axis = model.axis.astype(dtype)
     work = jnp.cumsum(out.work, axis=-1)
     scale = jax.lax.cummax(jnp.maximum(jnp.abs(out.energy), jnp.abs(work)), axis=out.energy.ndim - 1)
     created = out.energy - work > ENERGY_RTOL * scale + jnp.finfo(dtype).tiny
-    flags = out.flags | jnp.where(created, status.ENERGY_CREATED, 0).astype(jnp.int32)
+    deep = _deep_runs(out.penetration, penetration_depth(model))
+    flags = (
+        out.flags
+        | jnp.where(created, status.ENERGY_CREATED, 0).astype(jnp.int32)
+        | jnp.where(deep, status.DEEP_PENETRATION, 0).astype(jnp.int32)
+    )
     n = out.energy.shape[-1]
 
     def nan_if_invalid(a):
@@ -194,7 +232,7 @@ def _result(out: StepOutput, xs, start, valid, dt, axis) -> Result:
         return jnp.where(v, a, jnp.nan)
 
     res = Result(
-        t=(jnp.arange(n) + 1) * jnp.asarray(dt, dtype),
+        t=(jnp.arange(n) + 1) * jnp.asarray(model.dt, dtype),
         travel=jnp.sum((out.plug - start[..., None, :]) * axis, axis=-1),
         insertion_force=out.insertion_force,
         lateral_force=out.lateral_force,
@@ -206,6 +244,7 @@ def _result(out: StepOutput, xs, start, valid, dt, axis) -> Result:
         work=out.work,
         friction_dissipation=out.friction_dissipation,
         normal_dissipation=out.normal_dissipation,
+        penetration=out.penetration,
         plug=out.plug,
         plug_rotation=out.plug_rotation,
         contact_force=out.contact_force,
@@ -224,8 +263,8 @@ def _result(out: StepOutput, xs, start, valid, dt, axis) -> Result:
 
 _FLOAT_FIELDS = (
     "travel", "insertion_force", "lateral_force", "base_force", "base_moment", "coupling_force",
-    "coupling_moment", "energy", "work", "friction_dissipation", "normal_dissipation", "plug", "plug_rotation",
-    "contact_force", "contact_point", "residual", "x",
+    "coupling_moment", "energy", "work", "friction_dissipation", "normal_dissipation", "penetration", "plug",
+    "plug_rotation", "contact_force", "contact_point", "residual", "x",
 )  # fmt: skip
 
 
@@ -238,7 +277,7 @@ def _nan_fields(res: Result, f) -> Result:
 def _whole(model: Model, prepared: Prepared, controls, plug_start, keep_x):
     """``rollout`` without progress: the casts, the scan and the result in one compiled call."""
     out, xs, start = _run(model, prepared, controls, plug_start, keep_x)
-    return _result(out, xs, start, prepared.valid, model.dt, model.axis.astype(out.energy.dtype))
+    return _result(out, xs, start, prepared.valid, model)
 
 
 def progress_chunk(n_steps: int) -> int:
@@ -253,8 +292,8 @@ def _chunk(model: Model, prepared: Prepared, state: State, controls, keep_x):
 
 
 @eqx.filter_jit
-def _finish(out, xs, start, valid, dt, axis):
-    return _result(out, xs, start, valid, dt, axis.astype(out.energy.dtype))
+def _finish(out, xs, start, valid, model):
+    return _result(out, xs, start, valid, model)
 
 
 def _with_progress(model, prepared, controls, plug_start, keep_x):
@@ -282,7 +321,7 @@ def _with_progress(model, prepared, controls, plug_start, keep_x):
             bar.update(n_real)
     out = jax.tree_util.tree_map(lambda *a: jnp.concatenate(a), *outs)
     xs = None if not keep_x else jnp.concatenate(xs_all)
-    return _finish(out, xs, start, prepared.valid, model.dt, model.axis)
+    return _finish(out, xs, start, prepared.valid, model)
 
 
 @x64
@@ -421,6 +460,6 @@ def _batched(model: Model, params: Params, controls, plug_start, keep_x):
     def one(p, c, s):
         prepared = _prepare(model, p)
         out, xs, start = _run(model, prepared, c, s, keep_x)
-        return _result(out, xs, start, prepared.valid, model.dt, model.axis.astype(out.energy.dtype))
+        return _result(out, xs, start, prepared.valid, model)
 
     return jax.vmap(one)(params, controls, plug_start)

@@ -13,6 +13,7 @@ import numpy as np
 
 __all__ = [
     "CONTACT_OVERFLOW",
+    "DEEP_PENETRATION",
     "ENERGY_CREATED",
     "ERRORS",
     "INVALID_PARAMS",
@@ -28,10 +29,11 @@ INVALID_PARAMS = 1  # a physical parameter is NaN or out of its range (outputs a
 NON_FINITE = 2  # the step produced a non-finite state or force
 ENERGY_CREATED = 4  # the deformable part holds more energy than the rigid part's work put in
 CONTACT_OVERFLOW = 8  # more contact candidates than buffer slots: some were dropped
+DEEP_PENETRATION = 32  # the deformable part stayed deep inside the rigid part for several steps
 # Warnings: the result is what was asked for, less tightly.
 NOT_CONVERGED = 16  # the contact solve stopped at its iteration cap above 100x its tolerance
 
-ERRORS = INVALID_PARAMS | NON_FINITE | ENERGY_CREATED | CONTACT_OVERFLOW
+ERRORS = INVALID_PARAMS | NON_FINITE | ENERGY_CREATED | CONTACT_OVERFLOW | DEEP_PENETRATION
 
 
 class Flag(enum.IntFlag):
@@ -42,7 +44,9 @@ class Flag(enum.IntFlag):
     - ``INVALID_PARAMS``: a physical parameter is NaN or out of its range (outputs are NaN);
     - ``NON_FINITE``: the step produced a non-finite state or force;
     - ``ENERGY_CREATED``: the deformable part holds more energy than the rigid part's work put in;
-    - ``CONTACT_OVERFLOW``: more contact candidates than buffer slots (some were dropped).
+    - ``CONTACT_OVERFLOW``: more contact candidates than buffer slots (some were dropped);
+    - ``DEEP_PENETRATION``: a point of the deformable part stayed inside the rigid part deeper
+      than the contact resolves for several steps (the contact lost hold of it).
 
     Warning, the result is what was asked for, less tightly:
 
@@ -53,6 +57,7 @@ class Flag(enum.IntFlag):
     NON_FINITE = NON_FINITE
     ENERGY_CREATED = ENERGY_CREATED
     CONTACT_OVERFLOW = CONTACT_OVERFLOW
+    DEEP_PENETRATION = DEEP_PENETRATION
     NOT_CONVERGED = NOT_CONVERGED
     ERRORS = ERRORS
 
@@ -65,6 +70,9 @@ _WHAT = {
     "solve failed): results are not physical",
     CONTACT_OVERFLOW: "more contact candidates than contact.capacity slots: points were dropped "
     "(raise contact.capacity)",
+    DEEP_PENETRATION: "a point of the deformable part stayed inside the rigid part for several steps, "
+    "deeper than the contact resolves (Result.penetration): the contact lost hold of it and the forces "
+    "are not physical (contact.stabilisation = 0.1, or a smaller solver.dt, lets the contact push it out)",
     NOT_CONVERGED: "the contact solver stopped at contact.iterations above 100x contact.tolerance",
 }
 
@@ -78,7 +86,9 @@ def first_problem(flags, bits: int = ERRORS) -> tuple[int, int] | None:
         return None
     k = int(hit[0])
     bit = next(
-        b for b in (INVALID_PARAMS, NON_FINITE, ENERGY_CREATED, CONTACT_OVERFLOW, NOT_CONVERGED) if f[k] & b
+        b
+        for b in (INVALID_PARAMS, NON_FINITE, ENERGY_CREATED, DEEP_PENETRATION, CONTACT_OVERFLOW, NOT_CONVERGED)
+        if f[k] & b
     )
     return k, bit
 

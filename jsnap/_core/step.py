@@ -95,6 +95,7 @@ class StepOutput(eqx.Module):
     work: jax.Array
     friction_dissipation: jax.Array
     normal_dissipation: jax.Array
+    penetration: jax.Array
     plug: jax.Array
     plug_rotation: jax.Array
     contact_force: jax.Array
@@ -483,6 +484,7 @@ def _step(model: Model, prepared: Prepared, state: State, control):
         work=T * (jnp.sum(Gamma * vbar_p) + jnp.sum(Gamma * frame.spin(res.points))),
         friction_dissipation=friction_loss,
         normal_dissipation=normal_loss,
+        penetration=jnp.maximum(-jnp.min(phi_now), 0.0),
         plug=plug_new,
         plug_rotation=rotation,
         contact_force=Gamma,

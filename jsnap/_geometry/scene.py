@@ -380,8 +380,9 @@ SCHEMA: dict[str, dict[str, Key]] = {
             doc="fraction of a point's penetration into the rigid part removed per step. 0: the contact "
             "holds velocities only, which is passive; where contact slides around the rigid part's rounded "
             "edge for many steps (the annular lip) the linearised gap drifts inward, and a fraction of it "
-            "removed per step stops the drift; pushing points out does work, which the rollout's energy "
-            "check flags where it is too much",
+            "removed per step stops the drift; 0.1 pushes out a point the contact lost deep inside the rigid "
+            "part (flagged DEEP_PENETRATION); pushing points out does work, which the "
+            "rollout's energy check flags where it is too much",
         ),
         "width_spacing": _pos("mm", 1.0, "spacing of the contact candidate lines across the connector's width"),
         "solver": Key(
