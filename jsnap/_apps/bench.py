@@ -138,8 +138,10 @@ def _part_size(d):
         good = [r for _, _, r, _ in runs if abs(r - 1) <= 0.05]
         span = f"{cases[0]['k']:g}..{cases[-1]['k']:g}"
         text = f"{family} k = {span}: peak / k^2 {min(good):.3f}-{max(good):.3f} of k = 1"
+        again = {(c["k"], mu): c.get(f"peak_ratio_mu{mu}_stabilised") for c in cases for mu in (0.0, 0.3)}
         off = [
-            f"k = {k:g}, mu {mu:g}: x{r:.3g} ({'flagged' if s != 'ok' else 'unflagged'})"
+            f"k = {k:g}, mu {mu:g}: x{r:.3g} ({'flagged' if s != 'ok' else 'unflagged'}"
+            + (f"; with contact.stabilisation 0.1 x{again[k, mu]:.3f})" if again[k, mu] is not None else ")")
             for k, mu, r, s in runs
             if abs(r - 1) > 0.05
         ]
@@ -150,6 +152,19 @@ def _part_size(d):
             text += "; off by more than 5 %: " + ", ".join(off)
         rows.append(text)
     return "; ".join(rows)
+
+
+def _penetration(d):
+    rows = ", ".join(
+        f"{name} {max(r[f'mu{mu}']['deepest_resolutions'] for mu in (0.0, 0.3)):.2f}"
+        f" ({max(r[f'mu{mu}']['longest_run_deeper_than_limit'] for mu in (0.0, 0.3))})"
+        for name, r in d["parts"].items()
+    )
+    return (
+        f"deepest point inside the rigid part, in contact resolutions (longest run of steps beyond the "
+        f"DEEP_PENETRATION depth of {d['limit_resolutions']:g}; flagged above {d['limit_steps']}), mu 0 and "
+        f"0.3: {rows}"
+    )
 
 
 def _hand_over_cost(d):
@@ -580,6 +595,13 @@ BENCHMARKS = [
         "the shipped hook scaled 1/16 to 16 times, as a preset and as files, against dimensional analysis",
         False,
         _part_size,
+        timed=False,
+    ),
+    Bench(
+        "penetration",
+        "how deep the shipped scenes go into the rigid part, against the DEEP_PENETRATION flag's limit",
+        False,
+        _penetration,
         timed=False,
     ),
     Bench(
