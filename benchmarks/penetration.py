@@ -31,7 +31,7 @@ from part_size import files_scene, write_files
 
 import jsnap
 from jsnap._apps.simulate import run_sizing_buffer
-from jsnap._core.rollout import PENETRATION_DEPTH, PENETRATION_STEPS, penetration_depth
+from jsnap._core.rollout import PENETRATION_DEPTH, PENETRATION_STEPS, contact_resolution
 
 jsnap.configure_xla_cpu()
 
@@ -64,7 +64,7 @@ def longest_run(deep: np.ndarray) -> int:
 def measure(name: str, scene: jsnap.Scene) -> dict:
     """One scene at each friction: its depths in contact resolutions and its status."""
     model = jsnap.build(scene)
-    resolution = penetration_depth(model) / PENETRATION_DEPTH
+    resolution = contact_resolution(model)
     row = {"resolution_mm": resolution, "dtype": model.dtype, "dt": model.dt}
     for mu in FRICTIONS:
         _, res, _ = run_sizing_buffer(scene, model, lambda m: jsnap.rollout(m, m.params.replace(friction=mu)))

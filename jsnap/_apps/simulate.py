@@ -384,7 +384,7 @@ def simulate(args) -> int:
     import jax
 
     from jsnap._build.model import build_model
-    from jsnap._core.rollout import PENETRATION_DEPTH, _check_controls, _whole, penetration_depth
+    from jsnap._core.rollout import _check_controls, _whole, contact_resolution
     from jsnap._core.step import prepare
     from jsnap._geometry.scene import load_scene
 
@@ -444,7 +444,6 @@ def simulate(args) -> int:
             "(raise contact.iterations for a tighter solve)"
         )
     pen = np.asarray(res.penetration)
-    resolution = penetration_depth(model) / PENETRATION_DEPTH
     budget, lost = energy_to_peak(res)
     if lost is not None:
         warnings.append(lost)
@@ -491,9 +490,12 @@ def simulate(args) -> int:
         "contact_capacity_widened_from": widened_from,
         "max_solver_residual": _finite(np.nanmax(residual)) if np.isfinite(residual).any() else None,
         # The deepest any contact point went into the rigid part, mm, and that in contact
-        # resolutions (Result.penetration; DEEP_PENETRATION flags a run deeper than 4 of them).
+        # resolutions (Result.penetration; DEEP_PENETRATION flags a run deeper than
+        # PENETRATION_DEPTH of them).
         "max_penetration_mm": _finite(np.nanmax(pen)) if np.isfinite(pen).any() else None,
-        "max_penetration_resolutions": _finite(np.nanmax(pen) / resolution) if np.isfinite(pen).any() else None,
+        "max_penetration_resolutions": _finite(np.nanmax(pen) / contact_resolution(model))
+        if np.isfinite(pen).any()
+        else None,
         # Up to the peak insertion force, N mm (energy_to_peak).
         "energy_to_peak": budget,
         "outputs": {"csv": str(csv), "png": str(png), "pvd": str(pvd)},

@@ -75,7 +75,7 @@ class Result(StepOutput):
         penetration: (n,) how deep the deformable part's deepest contact point lies inside the
             rigid part at the start of the step, mm (0: none inside). The contact holds
             velocities, so a point that a step carried in stays there until the part moves it
-            out: a snap's spring-in goes a few contact spacings deep for a step or two; a run of
+            out: a snap's spring-in goes a few contact resolutions deep for a step or two; a run of
             more than ``PENETRATION_STEPS`` steps deeper than ``penetration_depth(model)`` is
             flagged ``DEEP_PENETRATION``.
         plug: (n, 3) the rigid part's centre, mm.
@@ -202,10 +202,15 @@ def _deep_runs(penetration, depth):
     return deep & (next_shallow - last_shallow - 1 > PENETRATION_STEPS)
 
 
+def contact_resolution(model: Model) -> float:
+    """The contact's resolution, mm: the larger of its margin and its candidate spacing."""
+    return max(float(model.contact.margin), float(model.samples.spacing))
+
+
 def penetration_depth(model: Model) -> float:
     """The depth (mm) beyond which a point's penetration into the rigid part is deep:
-    ``PENETRATION_DEPTH`` times the larger of the contact's margin and its spacing."""
-    return PENETRATION_DEPTH * max(float(model.contact.margin), float(model.samples.spacing))
+    ``PENETRATION_DEPTH`` contact resolutions (:func:`contact_resolution`)."""
+    return PENETRATION_DEPTH * contact_resolution(model)
 
 
 def _result(out: StepOutput, xs, start, valid, model: Model) -> Result:
