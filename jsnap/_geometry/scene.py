@@ -395,7 +395,13 @@ SCHEMA: dict[str, dict[str, Key]] = {
         ),
         "iterations": Key(int, 500, "", 1, doc="iteration cap per contact solve"),
         "tolerance": _pos("", 1e-6, "normalised KKT residual the contact solve stops at"),
-        "spacing": _pos("mm", 0.02, "candidate spacing along the section outline", internal=True),
+        "spacing": _pos(
+            "mm",
+            0.02,
+            "spacing of the contact candidate points along each line (across the contact line); "
+            "coarser is faster and rougher: each point is one more collision query and one more "
+            "nearly dependent row for the solver (docs/contact.md)",
+        ),
         "margin": _nonneg("mm", 0.02, "distance below which a point is a contact candidate", internal=True),
         "compliance": _nonneg("mm/N", 0.0, "contact regularisation per point", internal=True),
         "sampling": Key(
