@@ -35,6 +35,17 @@ FLOAT32 = {"solver.dtype": "float32"}
 # every 2.0 mm across the width (default 1.0), 24 slots (64), at most 200 solver iterations (500).
 # reduction_speed.py adds the SPG solver and the 1e-4 residual for its speed rows.
 LIGHT = {"contact.width_spacing": 2.0, "contact.capacity": 24, "contact.iterations": 200}
+# The box lid (jsnap/scenes/box_lid.toml) at the default contact sampling and point load cases,
+# with a finer reduction tolerance: the shipped scene samples its contact more coarsely and
+# reduces it by patch loads for a 1 kHz step (benchmarks/box_lid.py). The benchmarks that study a
+# mechanism on the lid (patch loads, the hand-over, the snap's sensitivity, XLA's kernels) run it
+# this way, the contact sampled as on every other preset.
+LID_DEFAULT_SAMPLING = {
+    "contact.width_spacing": 1.0,
+    "contact.spacing": 0.02,
+    "solver.load_patch": 0.0,
+    "solver.hsv_tolerance": 1e-3,
+}
 # A contact solve tight enough to stand for the exact one: ADMM (it converges where APGD stalls
 # on these problems) to the 1e-10 residual, at most 20000 iterations; run it in float64. ADMM is
 # an internal choice of contact.solver: apply it with :func:`load_scene` or ``with_internal``.
@@ -128,13 +139,17 @@ def run_status(res) -> str:
     return describe(np.asarray(res.flags), ERRORS | NOT_CONVERGED)
 
 
-def curve_stats(F, travel, ref_F):
+def curve_stats(F, travel, ref_F, rise_end: int | None = None):
     """Peak, its travel, and the RMS difference from ``ref_F`` (the same travels) in % of its
     peak over the whole motion and over the rise (up to ``ref_F``'s peak: after a snap the hooks
-    ring against the rigid part's sides, which are exactly where their faces rest)."""
-    k, rise = int(np.argmax(F)), int(np.argmax(ref_F)) + 1
-    rmse = float(np.sqrt(np.mean((F - ref_F) ** 2)) / ref_F.max())
-    rmse_rise = float(np.sqrt(np.mean((F[:rise] - ref_F[:rise]) ** 2)) / ref_F.max())
+    ring against the rigid part's sides, which are exactly where their faces rest). Or up to the
+    step ``rise_end``, where a single step of that ringing is ``ref_F``'s largest force: then
+    both differences are in % of ``ref_F``'s peak on the rise."""
+    k = int(np.argmax(F))
+    rise = (int(np.argmax(ref_F)) if rise_end is None else int(rise_end)) + 1
+    peak = ref_F[:rise].max()
+    rmse = float(np.sqrt(np.mean((F - ref_F) ** 2)) / peak)
+    rmse_rise = float(np.sqrt(np.mean((F[:rise] - ref_F[:rise]) ** 2)) / peak)
     return {
         "peak_N": float(F[k]),
         "travel_at_peak_mm": float(travel[k]),

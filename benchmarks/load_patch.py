@@ -43,7 +43,7 @@ import os
 from pathlib import Path
 
 import numpy as np
-from _common import curve_stats, load_scene, stamped, timing_row, write_result
+from _common import LID_DEFAULT_SAMPLING, curve_stats, load_scene, stamped, timing_row, write_result
 
 import jsnap
 from jsnap._geometry.scene import default_scene_path
@@ -146,7 +146,7 @@ def main() -> int:
             out["orders"][f"mesh {mesh:g} patch {patch:g}"] = row
             print(f"default hook mesh {mesh:g} patch {patch:g}:", row, flush=True)
     out["default_hook_0.8mm"] = against_full(default, "default hook", rates=False, patches=PATCHES + WIDE)
-    lid = jsnap.load_scene(LID).replace({"solver.mesh_size": LID_MESH})
+    lid = jsnap.load_scene(LID).replace({**LID_DEFAULT_SAMPLING, "solver.mesh_size": LID_MESH})
     out["box_lid_1.2mm"] = against_full(lid, "box lid", rates=True)
     out["load_average"] = os.getloadavg()[0]
     write_result(out, OUT / "load_patch.json")

@@ -1,7 +1,7 @@
 """How deep the deformable part goes into the rigid part, on every shipped scene, against the
 limit of the ``DEEP_PENETRATION`` flag.
 
-    python benchmarks/penetration.py
+    python benchmarks/penetration.py [--parts box_lid,...]
 
 The contact holds velocities (``contact.stabilisation = 0`` on every scene but the annular
 snap), so a point that a step carries into the rigid part stays there until the part moves it
@@ -17,16 +17,18 @@ lip the contact loses in the snap at friction 0.3, at its time step (10 ms) and 
 
 Recorded per case: the resolution (mm), the deepest penetration (in resolutions) and its step,
 the longest run of steps deeper than 2 resolutions and deeper than the limit, the status, and
-the history. Writes benchmarks/results/penetration.{json,png}.
+the history. ``--parts`` reruns some cases and keeps the other rows of the committed result,
+each with the date and commit it was measured at. Writes benchmarks/results/penetration.{json,png}.
 """
 
 from __future__ import annotations
 
+import argparse
 import tempfile
 from pathlib import Path
 
 import numpy as np
-from _common import run_status, write_result
+from _common import previous_result, run_status, stamped, write_result
 from part_size import files_scene, write_files
 
 import jsnap
@@ -86,15 +88,29 @@ def measure(name: str, scene: jsnap.Scene) -> dict:
     return row
 
 
-def main() -> int:
-    out = {"limit_resolutions": PENETRATION_DEPTH, "limit_steps": PENETRATION_STEPS, "parts": {}}
-    for name, path in PARTS.items():
-        out["parts"][name] = measure(name, jsnap.load_scene(path))
-    with tempfile.TemporaryDirectory() as tmp:
-        d = Path(tmp)
-        write_files(d, [10.0])
-        for name, changes in FILE_HOOK.items():
-            out["parts"][name] = measure(name, files_scene(d, 10.0).replace(changes))
+def main(argv=None) -> int:
+    known = [*PARTS, *FILE_HOOK]
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--parts", default=",".join(known), help="comma-separated; default: all")
+    parts = parser.parse_args(argv).parts.split(",")
+    unknown = sorted(set(parts) - set(known))
+    if unknown:
+        parser.error(f"--parts: unknown {', '.join(unknown)} (the cases: {', '.join(known)})")
+    before = previous_result(OUT / "penetration.json", parts, known).get("parts", {})
+    rows = {}
+    for name in known:
+        if name not in parts:
+            rows[name] = before[name]
+        elif name in PARTS:
+            rows[name] = stamped(measure(name, jsnap.load_scene(PARTS[name])))
+    if set(parts) & set(FILE_HOOK):
+        with tempfile.TemporaryDirectory() as tmp:
+            d = Path(tmp)
+            write_files(d, [10.0])
+            for name, changes in FILE_HOOK.items():
+                if name in parts:
+                    rows[name] = stamped(measure(name, files_scene(d, 10.0).replace(changes)))
+    out = {"limit_resolutions": PENETRATION_DEPTH, "limit_steps": PENETRATION_STEPS, "parts": rows}
     write_result(out, OUT / "penetration.json")
     plot(out)
     return 0

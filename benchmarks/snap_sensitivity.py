@@ -37,7 +37,15 @@ import json
 from pathlib import Path
 
 import numpy as np
-from _common import kept_rows, load_scene, presets_option, previous_result, stamped, write_result
+from _common import (
+    LID_DEFAULT_SAMPLING,
+    kept_rows,
+    load_scene,
+    presets_option,
+    previous_result,
+    stamped,
+    write_result,
+)
 
 import jsnap
 from jsnap._geometry.scene import default_scene_path
@@ -50,7 +58,7 @@ PRESETS = ("two_hook_clip", "cable_latch", "box_lid", "annular")
 FULL_CONTACT = {"contact.solver": "apgd", "contact.iterations": 5000}
 TIGHT = {"contact.tolerance": 1e-8}
 # The box lid's full model on the shipped 0.8 mm mesh needs ~10 GB: both models on 1.2 mm.
-MESH = {"box_lid": {"solver.mesh_size": 1.2}}
+MESH = {"box_lid": {"solver.mesh_size": 1.2, **LID_DEFAULT_SAMPLING}}
 
 
 def snap_step(ref) -> int:
