@@ -436,8 +436,9 @@ def lid_run():
 def test_lid_hooks_engage_one_pair_after_the_other(lid_run):
     """The tilt delays the +y pair by the box's slope over the spacing: its first contact comes
     spacing * tan(tilt) mm of travel after the -y pair's (within two steps); the two pairs, the
-    same hooks met at different times, reach nearly the same peak; and while only the -y pair is pushed
-    the base carries that push's moment about x (the sensor reads it)."""
+    same hooks met at different times, reach nearly the same peak on their way over the lips; and
+    while only the -y pair is pushed the base carries that push's moment about x (the sensor
+    reads it)."""
     scene, model, res = lid_run
     c = scene["connector"]
     travel = np.asarray(res.travel)
@@ -449,9 +450,19 @@ def test_lid_hooks_engage_one_pair_after_the_other(lid_run):
     step = float(np.diff(travel).max())
     delay = c["spacing"] * np.tan(np.radians(c["tilt"]))
     assert first[1] - first[0] == pytest.approx(delay, abs=2 * step)
+    # Each pair's peak on its way over the lips: from its first contact through the travel of
+    # the lead ramp and the flat (two steps more). After the snaps the released, undamped hooks
+    # rattle against the box's walls, and that transient's spikes are not the same for the two.
+    # The rise is a sawtooth (the slanted lips meet the candidate points one by one), so the
+    # peaks are read through a three-step moving average, not from a single step's tooth.
+    over = c["undercut"] / np.tan(np.radians(c["lead_angle"])) + c["flat"] + 2 * step
+    peaks = [
+        np.convolve(f, np.ones(3) / 3, mode="same")[travel <= t + over].max()
+        for f, t in zip((ahead, behind), first, strict=True)
+    ]
     # Within 5 %: the gmsh mesh is not mirror-symmetric, and the lid carries the first pair's
     # snap to the second while it is loaded.
-    np.testing.assert_allclose(np.abs(ahead).max(), np.abs(behind).max(), rtol=0.05)
+    np.testing.assert_allclose(peaks[0], peaks[1], rtol=0.05)
     only = np.flatnonzero((ahead > 0.5) & (np.abs(behind) < 1e-9))
     assert only.size >= 5
     nodes, free = np.asarray(model.mesh.nodes), np.asarray(model.mesh.free)

@@ -220,6 +220,14 @@ def _box_lid(d):
     ccx = acc.get("tilt 0 mu 0", {}).get("calculix")
     if ccx:
         text += f"; untilted shipped mu 0 peak {ccx['shipped_float32']['peak_over_reference']:.3f} x CalculiX's"
+    light = d["speed"].get("light_against_default")
+    if light:
+        rows = light["rows"]
+        text += (
+            f"; interleaved: shipped {rows['shipped']['steps_per_second']:.0f} against "
+            f"{rows['default_sampling']['steps_per_second']:.0f} steps/s at the default contact spacings "
+            f"(x{rows['speedup']:.2f})"
+        )
     order = d["speed"].get("rate_against_order")
     if order:
         text += (
