@@ -279,15 +279,15 @@ def write_result(out: dict, path: Path) -> None:
     path.write_text(json.dumps(out, indent=1) + "\n")
 
 
-def presets_option(parser, known, argv) -> list[str]:
-    """The presets that ``--presets`` names (comma-separated; default: all of ``known``); an
-    unknown name is a parser error naming it."""
-    parser.add_argument("--presets", default=",".join(known), help="comma-separated; default: all")
-    presets = parser.parse_args(argv).presets.split(",")
-    unknown = sorted(set(presets) - set(known))
+def presets_option(parser, known, argv, option: str = "presets") -> list[str]:
+    """The names that ``--presets`` (or ``--<option>``) gives (comma-separated; default: all
+    of ``known``); an unknown name is a parser error naming it."""
+    parser.add_argument(f"--{option}", default=",".join(known), help="comma-separated; default: all")
+    names = getattr(parser.parse_args(argv), option).split(",")
+    unknown = sorted(set(names) - set(known))
     if unknown:
-        parser.error(f"--presets: unknown {', '.join(unknown)} (the presets: {', '.join(known)})")
-    return presets
+        parser.error(f"--{option}: unknown {', '.join(unknown)} (known: {', '.join(known)})")
+    return names
 
 
 def previous_result(path: Path, rerun, known) -> dict:

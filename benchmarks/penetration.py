@@ -28,7 +28,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from _common import previous_result, run_status, stamped, write_result
+from _common import presets_option, previous_result, run_status, stamped, write_result
 from part_size import files_scene, write_files
 
 import jsnap
@@ -90,12 +90,7 @@ def measure(name: str, scene: jsnap.Scene) -> dict:
 
 def main(argv=None) -> int:
     known = [*PARTS, *FILE_HOOK]
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--parts", default=",".join(known), help="comma-separated; default: all")
-    parts = parser.parse_args(argv).parts.split(",")
-    unknown = sorted(set(parts) - set(known))
-    if unknown:
-        parser.error(f"--parts: unknown {', '.join(unknown)} (the cases: {', '.join(known)})")
+    parts = presets_option(argparse.ArgumentParser(description=__doc__.splitlines()[0]), known, argv, "parts")
     before = previous_result(OUT / "penetration.json", parts, known).get("parts", {})
     rows = {}
     for name in known:
