@@ -135,12 +135,13 @@ def _socket_us_per_step(model, prepared, n: int = 100) -> float:
         def body(_, c):
             x, v = c
             vbar = sock.free_velocity(op, x, v)
-            y = sock.sample_disp(x)
-            st = sock.stencil_disp(x, idx)
+            xn = sock.nodal(x)
+            y = sock.sample_at(xn)
+            st = sock.stencil_at(xn, idx)
             A, W = sock.contact_operator(op, idx)
             g = force * (1 + 0 * (jnp.sum(W) + jnp.sum(st) + jnp.sum(y)))
             vbar = vbar + jnp.einsum("cdn,cd->n", A, g)
-            u = sock.point_velocity(vbar, idx)
+            u = sock.point_at(sock.nodal(vbar), idx)
             x_new, v_new = x + op.dt * vbar, 2 * vbar - v
             e = sock.energy(op, x_new, v_new)
             f, _ = sock.base_wrench(mat, op.dt, x, v, v_new, vbar)

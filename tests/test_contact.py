@@ -664,6 +664,7 @@ def test_solve_on_leading_slots_is_the_whole_buffers(n_active, x64):
 
     C, n = 128, 40
     assert _buckets(C) == (32, 64, 128) and _buckets(64) == (16, 64)
+    assert _buckets(256) == (16, 24, 32, 48, 64, 128, 256)
     W, q, mu, _ = random_problem(seed=n_active, C=C, n_kind="over")
     A = np.random.default_rng(n_active).standard_normal((C, 3, n))  # what contact_velocity applies
 

@@ -59,11 +59,18 @@ class AbstractPart(eqx.Module):
         out_kl, out_km, out_m1: (6, n) force (N) and moment about the base centroid (N mm) that
             the fixed base exerts per unit of ``K_lam``, ``K_mu`` and ``M1`` action of the
             part's coordinates: the base wrench is a linear output of the state.
+        sample_nodes, sample_weights: (P, k) each contact point's interpolating nodes (rows of
+            ``nodal``) and its face's shape functions there.
+        stencil_nodes, stencil_weights: (P, 8, k) the same for each point's normal stencil.
     """
 
     out_kl: eqx.AbstractVar[jax.Array]
     out_km: eqx.AbstractVar[jax.Array]
     out_m1: eqx.AbstractVar[jax.Array]
+    sample_nodes: eqx.AbstractVar[jax.Array]
+    sample_weights: eqx.AbstractVar[jax.Array]
+    stencil_nodes: eqx.AbstractVar[jax.Array]
+    stencil_weights: eqx.AbstractVar[jax.Array]
 
     # Whether the Delassus block is offered as thin factors (contact_factors).
     factored: ClassVar[bool] = False
@@ -82,12 +89,28 @@ class AbstractPart(eqx.Module):
         """Midpoint velocity without contact force, (n,)."""
 
     @abc.abstractmethod
+    def nodal(self, x):
+        """(N, 3): coordinates ``x`` (displacements or velocities) at the nodes that the contact
+        points and their stencils interpolate (``sample_nodes``, ``stencil_nodes`` index them).
+        For a part whose coordinates are not nodal it is a product with the contact nodes' rows
+        (c x 3 x r, a few MB), so a step takes it once per vector and interpolates from it."""
+
     def sample_disp(self, x):
         """(P, 3) displacement of the contact candidate points, mm."""
+        return self.sample_at(self.nodal(x))
 
-    @abc.abstractmethod
-    def stencil_disp(self, x, idx):
-        """(C, 8, 3) displacement of the selected points' normal stencils, mm."""
+    def sample_at(self, xn):
+        """(P, 3) the candidate points' values of ``nodal`` values ``xn``."""
+        return _interpolate_rows(self.sample_weights, self.sample_nodes, xn)
+
+    def stencil_at(self, xn, idx):
+        """(C, 8, 3) the selected points' normal stencils' values of ``nodal`` values ``xn``."""
+        w, nodes = self.stencil_weights[idx], self.stencil_nodes[idx]
+        return sum(w[:, :, k, None] * xn[nodes[:, :, k]] for k in range(w.shape[2]))
+
+    def point_at(self, xn, idx):
+        """(C, 3) the selected points' values of ``nodal`` values ``xn``."""
+        return _interpolate_rows(self.sample_weights[idx], self.sample_nodes[idx], xn)
 
     @abc.abstractmethod
     def contact_operator(self, op, idx):
@@ -100,10 +123,6 @@ class AbstractPart(eqx.Module):
     @abc.abstractmethod
     def contact_velocity(self, op, A, force):
         """Midpoint velocity (n,) that forces (C, 3) at the selected points add."""
-
-    @abc.abstractmethod
-    def point_velocity(self, vbar, idx):
-        """(C, 3) velocity of the selected points."""
 
     @abc.abstractmethod
     def energy(self, op, x, v):
@@ -176,13 +195,8 @@ class FullPart(AbstractPart):
     def free_velocity(self, op: PMIOperator, x, v):
         return op.S_inv @ pmi_rhs(self.blocks, op, x, v, jnp.zeros_like(x))
 
-    def sample_disp(self, x):
-        xn = x.reshape(-1, 3)
-        return jnp.einsum("pk,pkd->pd", self.sample_weights, xn[self.sample_nodes])
-
-    def stencil_disp(self, x, idx):
-        xn = x.reshape(-1, 3)
-        return jnp.einsum("csk,cskd->csd", self.stencil_weights[idx], xn[self.stencil_nodes[idx]])
+    def nodal(self, x):
+        return x.reshape(-1, 3)
 
     def _dofs(self, idx):
         return 3 * self.sample_nodes[idx][..., None] + jnp.arange(3)  # (C, k, 3)
@@ -199,9 +213,6 @@ class FullPart(AbstractPart):
 
     def contact_velocity(self, op: PMIOperator, A, force):
         return _rows_transpose_times(A, force)
-
-    def point_velocity(self, vbar, idx):
-        return jnp.einsum("ck,ckd->cd", self.sample_weights[idx], vbar.reshape(-1, 3)[self.sample_nodes[idx]])
 
     def energy(self, op: PMIOperator, x, v):
         return energy(self.blocks, op, x, v)
@@ -221,29 +232,14 @@ class _ContactNodeRows(AbstractPart):
 
     Attributes:
         node_rows: (c, 3, r) displacement of the contact nodes (the interpolating nodes of the
-            candidate points and of their stencils) per unit coordinate.
-        sample_nodes, sample_weights: (P, k) indices into ``node_rows`` and shape functions.
-        stencil_nodes, stencil_weights: (P, 8, k) the same for the normal stencils.
+            candidate points and of their stencils) per unit coordinate; ``sample_nodes`` and
+            ``stencil_nodes`` index its rows.
     """
 
     node_rows: eqx.AbstractVar[jax.Array]
-    sample_nodes: eqx.AbstractVar[jax.Array]
-    sample_weights: eqx.AbstractVar[jax.Array]
-    stencil_nodes: eqx.AbstractVar[jax.Array]
-    stencil_weights: eqx.AbstractVar[jax.Array]
 
-    def _nodes(self, x):
+    def nodal(self, x):
         return jnp.einsum("cdr,r->cd", self.node_rows, x)
-
-    def sample_disp(self, x):
-        return _interpolate_rows(self.sample_weights, self.sample_nodes, self._nodes(x))
-
-    def stencil_disp(self, x, idx):
-        xn = self._nodes(x)
-        return jnp.einsum("csk,cskd->csd", self.stencil_weights[idx], xn[self.stencil_nodes[idx]])
-
-    def point_velocity(self, vbar, idx):
-        return jnp.einsum("ck,ckd->cd", self.sample_weights[idx], self._nodes(vbar)[self.sample_nodes[idx]])
 
 
 @jax.custom_jvp

@@ -257,11 +257,13 @@ def _delassus(W, shift, k: int) -> jax.Array:
 
 
 def _contact_problem(
-    model: Model, prepared: Prepared, state: State, frame: _Frame, vbar_free, vp_free, s_p, y, score, gamma
+    model: Model, prepared: Prepared, state: State, frame: _Frame, nodal, vp_free, s_p, y, score, gamma
 ):
     """The cone problem of one step (before solving it).
 
     Args:
+        nodal: ``(xn, vn)``, the part's ``nodal`` values of its coordinates and of its free
+            midpoint velocity.
         y: (P, 3) candidate points at the start of the step, mm.
         score: (P,) selection score: the points with ``score < margin`` are candidates, the
             lowest first (normally the signed distance to the rigid part).
@@ -280,7 +282,8 @@ def _contact_problem(
     n_plug = frame.world(n_plug)
     active = keep[idx]
     smp = model.samples
-    stencil = smp.stencil[idx] + part.stencil_disp(state.x, idx)
+    xn, vn_free = nodal
+    stencil = smp.stencil[idx] + part.stencil_at(xn, idx)
     spacing = smp.spacing
 
     def rigid_normal_at(points):
@@ -293,7 +296,7 @@ def _contact_problem(
     active = active & carries
     R = frames(normal)
     shift = jnp.asarray(settings.compliance / T, dtype)
-    u_free = part.point_velocity(vbar_free, idx) - vp_free - frame.spin(y[idx])
+    u_free = part.point_at(vn_free, idx) - vp_free - frame.spin(y[idx])
     # A gap closes within the step; a penetration (the linearised gap drifts inward where a
     # point slides around a curved feature of the rigid part) is removed by the fraction
     # contact.stabilisation of it.
@@ -308,17 +311,20 @@ def _contact_problem(
 def _buckets(capacity: int) -> tuple[int, ...]:
     """Problem sizes (slots) the solve is cut to: a quarter (or, when that is below 8, half) of
     ``capacity``, an eighth of it when that is at least 32 slots, half of it when that is at
-    least 64 slots, and all of it. Each size is one more compiled copy of the solver (~1.5 s
-    more to compile a rollout). Half of a 64-slot buffer gained nothing measurable on the
-    default scene, where a small matvec costs its kernel launch; half of 128 doubles the
-    two-hook clip's APGD step rate (60 active slots at its peak: the matvecs shrink fourfold;
-    ``benchmarks/two_hook_clip.py``); an eighth of 256 lets the box lid solve its two fifths
-    of steps with at most 32 active slots on a 96-row Delassus matrix instead of 192, 1.18
-    times its rollout's rate (docs/contact.md)."""
+    least 64 slots, and all of it; and for a buffer of at least 256 slots a sixteenth, three
+    thirty-seconds and three sixteenths of it too. Each size is one more compiled copy of the
+    solver (~1.5 s more to compile a rollout). Half of a 64-slot buffer gained nothing
+    measurable on the default scene, where a small matvec costs its kernel launch; half of 128
+    doubles the two-hook clip's APGD step rate (60 active slots at its peak: the matvecs shrink
+    fourfold; ``benchmarks/two_hook_clip.py``). A large buffer's steps mostly hold a few dozen
+    contacts, and forming the Delassus matrix (its order squared times the reduced order) is
+    then most of the solve: the box lid's 256 slots hold 1-42, and the sizes 16, 24, 32, 48,
+    64 in place of 32 and 64 step its rollout 1.2 times faster (docs/contact.md)."""
     small = next((k for k in (capacity // 4, capacity // 2) if k >= 8), capacity)
     eighth = capacity // 8 if capacity // 8 >= 32 else capacity
     half = capacity // 2 if capacity // 2 >= 64 else capacity
-    return tuple(sorted({eighth, small, half, capacity}))
+    fine = (capacity // 16, 3 * capacity // 32, 3 * capacity // 16) if capacity >= 256 else ()
+    return tuple(sorted({*fine, eighth, small, half, capacity}))
 
 
 def _solve(model: Model, op, prob: ContactProblem):
@@ -408,11 +414,13 @@ def _step(model: Model, prepared: Prepared, state: State, control):
     vp_free, s_p = model.drive.free(state.plug, state.plug_vel, state.target, control, T)
 
     # 2.-3. Collision and the cone problem: candidates within the margin now.
-    y = model.samples.rest + part.sample_disp(x)
+    # The contact nodes' displacements and free velocities, once: both solves interpolate them.
+    nodal = (part.nodal(x), part.nodal(vbar_free))
+    y = model.samples.rest + part.sample_at(nodal[0])
     phi_now, _ = model.rigid.scene_query(frame.local(y), settings.margin)
 
     def attempt(score, warm, second):
-        prob = _contact_problem(model, prepared, state, frame, vbar_free, vp_free, s_p, y, score, warm)
+        prob = _contact_problem(model, prepared, state, frame, nodal, vp_free, s_p, y, score, warm)
         sol, Gamma, dv = _solve(model, op, prob)
         # 4. Predict-correct: where the solved motion would carry points that were not in the
         # buffer into the rigid part (a stiff, light part released by it springs back through a
@@ -420,7 +428,7 @@ def _step(model: Model, prepared: Prepared, state: State, control):
         # the step is straight, but a released stiff part can move farther than the rigid part
         # is thick in one step (PMI's undamped high modes flip sign), so the path is checked at
         # several points, not only at its end.
-        vel = part.sample_disp(vbar_free + dv)  # (P, 3) the points' solved midpoint velocity
+        vel = part.sample_at(nodal[1] + part.nodal(dv))  # (P, 3) the points' solved midpoint velocity
         dy = T * vel
         dp = T * (vp_free - s_p * jnp.sum(Gamma, axis=0))
         spin = T * frame.spin(y)  # the rigid part's turn over the step, to first order
