@@ -29,7 +29,9 @@ side by side.
    model, in one process, with the load average.
    The shipped model against the same lid at the other presets' contact sampling and point
    load cases (``_common.LID_DEFAULT_SAMPLING``), timed in interleaved rounds: what the scene's
-   light contact settings buy.
+   light contact settings buy. And the shipped model with the contact solve cut to the shipped
+   problem sizes against the sizes without those only a 256-slot buffer gets
+   (``jsnap._core.step._buckets``: 16, 24 and 48 slots), interleaved the same way.
 5. Rate against the reduced order: the shipped mesh's reduced model (float32) at each of
    ``ORDER_TOLERANCES``, its coordinates and steps/s, and the least-squares line of the time a
    step takes against the coordinates. Its intercept is the part of the step no reduction
@@ -49,6 +51,7 @@ import os
 import time
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import numpy as np
 from _common import (
@@ -67,6 +70,7 @@ from _common import (
 
 import jsnap
 from jsnap._apps.simulate import design_guide_force
+from jsnap._core import step as step_module
 from jsnap._core.contact import SPG, solve_admm, solve_apgd, solve_spg
 from jsnap._geometry.scene import default_scene_path
 
@@ -158,9 +162,28 @@ def interleaved(scenes: dict, rounds: int, label: str) -> dict:
     built = {}
     for key, scene in scenes.items():
         model = jsnap.build(scene)
-        prepared = jsnap.prepare(model)
+        built[key] = compiled(model, jsnap.prepare(model))
+    return interleaved_models(built, rounds, label)
+
+
+# The step's problem sizes as shipped (compiled() swaps the step's for a while).
+SHIPPED_SIZES = step_module._buckets
+
+
+def compiled(model, prepared, sizes=None) -> tuple:
+    """``(model, prepared, first result, first call's seconds)``: the model's rollout compiled
+    by a first call, with the contact solve's problem sizes ``sizes`` (a function of the
+    capacity; ``jsnap._core.step._buckets`` as shipped when None) while it is traced."""
+    step_module._buckets = sizes or SHIPPED_SIZES
+    try:
         res, first, _ = scan_timing(model, prepared, 1)
-        built[key] = (model, prepared, res, first)
+    finally:
+        step_module._buckets = SHIPPED_SIZES
+    return model, prepared, res, first
+
+
+def interleaved_models(built: dict, rounds: int, label: str) -> dict:
+    """:func:`interleaved` for models :func:`compiled` already (name -> its tuple)."""
     times = {key: [] for key in built}
     for _ in range(rounds):
         for key, (model, prepared, _, _) in built.items():
@@ -218,6 +241,49 @@ def light_against_default(base, rounds: int = 7) -> dict:
             "ok": bool(res.ok),
         }
     rows["speedup"] = rows["shipped"]["steps_per_second"] / rows["default_sampling"]["steps_per_second"]
+    return {"rows": rows, "rounds": rounds, "load_average": os.getloadavg()[0]}
+
+
+def _without_fine_sizes(capacity: int) -> tuple[int, ...]:
+    """The problem sizes less those that only a buffer of 256 slots or more gets (a sixteenth,
+    three thirty-seconds and three sixteenths of it): the lid's 32, 64, 128 and 256 instead of
+    16, 24, 32, 48, 64, 128 and 256."""
+    fine = (capacity // 16, 3 * capacity // 32, 3 * capacity // 16)
+    return tuple(k for k in SHIPPED_SIZES(capacity) if k not in fine)
+
+
+class _SameSolver(SPG):
+    """The scene's solver under another name: a model holding it is another compiled rollout
+    (jit's cache tells models apart by their types), so two can be compiled with different
+    problem sizes and then timed in alternation."""
+
+
+def problem_sizes(base, rounds: int = 7) -> dict:
+    """Steps/s of the shipped model with its contact solve cut to the shipped problem sizes and
+    to those without the sizes a 256-slot buffer gets beyond the smaller buffers' rule
+    (``_without_fine_sizes``), in interleaved rounds (:func:`interleaved_models`): what they buy.
+    The same forces but for the round-off of another summation order."""
+    model = jsnap.build(base)
+    prepared = jsnap.prepare(model)
+    s = model.contact.solver
+    coarse_model = eqx.tree_at(
+        lambda m: m.contact.solver, model, _SameSolver(max_iters=s.max_iters, tol=s.tol, implicit=s.implicit)
+    )
+    built = {
+        "shipped": compiled(model, prepared),
+        "without_fine_sizes": compiled(coarse_model, prepared, _without_fine_sizes),
+    }
+    rows = interleaved_models(built, rounds, "problem sizes")
+    for key, sizes in (("shipped", SHIPPED_SIZES), ("without_fine_sizes", _without_fine_sizes)):
+        row = rows[key]
+        model, res = row.pop("result")
+        row |= {
+            "problem_sizes": list(sizes(model.contact.capacity)),
+            "mean_iterations": float(np.mean(np.asarray(res.iterations))),
+            "peak_N": float(np.max(np.asarray(res.insertion_force))),
+            "ok": bool(res.ok),
+        }
+    rows["speedup"] = rows["shipped"]["steps_per_second"] / rows["without_fine_sizes"]["steps_per_second"]
     return {"rows": rows, "rounds": rounds, "load_average": os.getloadavg()[0]}
 
 
@@ -405,6 +471,7 @@ def timed(base) -> dict:
     shipped = jsnap.build(base)
     rows["shipped_reduced_float32"] = timing_row(shipped, 5)
     rows["light_against_default"] = light_against_default(base)
+    rows["problem_sizes"] = problem_sizes(base)
     rows["rate_against_order"] = rate_against_order(base)
     rows["solve_alone"] = solve_alone(shipped)
     return rows
@@ -465,7 +532,7 @@ def plot(out, curves):
             title=f"box lid, box tilted {tilt:g} deg",
         )
         a.legend(fontsize=7)
-    skip = ("rate_against_order", "solve_alone", "light_against_default")
+    skip = ("rate_against_order", "solve_alone", "light_against_default", "problem_sizes")
     plot_speed(ax[2], {k: v for k, v in out["speed"].items() if k not in skip})
     order = out["speed"].get("rate_against_order")
     if order is not None:

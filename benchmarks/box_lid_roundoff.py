@@ -40,8 +40,8 @@ SHIPPED = step_module._buckets
 
 
 def without_eighth(capacity: int) -> tuple[int, ...]:
-    """The scene's problem sizes less the eighth of the buffer (the 256-slot lid: 64, 128 and
-    256 slots instead of 32, 64, 128 and 256)."""
+    """The scene's problem sizes less the eighth of the buffer (the 256-slot lid: 16, 24, 48,
+    64, 128 and 256 slots instead of 16, 24, 32, 48, 64, 128 and 256)."""
     return tuple(k for k in SHIPPED(capacity) if k != capacity // 8 or k == capacity)
 
 
