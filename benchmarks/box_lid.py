@@ -248,8 +248,7 @@ def _without_fine_sizes(capacity: int) -> tuple[int, ...]:
     """The problem sizes less those that only a buffer of 256 slots or more gets (a sixteenth,
     three thirty-seconds and three sixteenths of it): the lid's 32, 64, 128 and 256 instead of
     16, 24, 32, 48, 64, 128 and 256."""
-    fine = (capacity // 16, 3 * capacity // 32, 3 * capacity // 16)
-    return tuple(k for k in SHIPPED_SIZES(capacity) if k not in fine)
+    return tuple(k for k in SHIPPED_SIZES(capacity) if k not in step_module._fine_buckets(capacity))
 
 
 class _SameSolver(SPG):

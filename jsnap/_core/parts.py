@@ -105,8 +105,7 @@ class AbstractPart(eqx.Module):
 
     def stencil_at(self, xn, idx):
         """(C, 8, 3) the selected points' normal stencils' values of ``nodal`` values ``xn``."""
-        w, nodes = self.stencil_weights[idx], self.stencil_nodes[idx]
-        return sum(w[:, :, k, None] * xn[nodes[:, :, k]] for k in range(w.shape[2]))
+        return _interpolate_rows(self.stencil_weights[idx], self.stencil_nodes[idx], xn)
 
     def point_at(self, xn, idx):
         """(C, 3) the selected points' values of ``nodal`` values ``xn``."""
@@ -151,11 +150,12 @@ class AbstractPart(eqx.Module):
 
 
 def _interpolate_rows(w, nodes, rows):
-    """(C, ...): ``einsum("ck,ck...->c...", w, rows[nodes])``, the rows of the ``k`` nodes of
-    each point weighted, as a sum over the k nodes: XLA:CPU runs the einsum as C tiny dots,
-    1.4-10x slower at 16-256 points (and 2.5x at ~600 points of (3,) rows)."""
-    w = w.reshape(w.shape + (1,) * (rows.ndim - 1))
-    return sum(w[:, k] * rows[nodes[:, k]] for k in range(w.shape[1]))
+    """(..., ...): ``einsum("...k,...k*->...*", w, rows[nodes])``, the rows of each point's
+    ``k`` nodes weighted, as a sum over the k nodes (the last axis of ``w`` and ``nodes``):
+    XLA:CPU runs the einsum as C tiny dots, 1.4-10x slower at 16-256 points (and 2.5x at ~600
+    points of (3,) rows)."""
+    tail = (1,) * (rows.ndim - 1)
+    return sum(w[..., k].reshape(w.shape[:-1] + tail) * rows[nodes[..., k]] for k in range(w.shape[-1]))
 
 
 def _rows_transpose_times(A, force):

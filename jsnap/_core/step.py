@@ -323,8 +323,12 @@ def _buckets(capacity: int) -> tuple[int, ...]:
     small = next((k for k in (capacity // 4, capacity // 2) if k >= 8), capacity)
     eighth = capacity // 8 if capacity // 8 >= 32 else capacity
     half = capacity // 2 if capacity // 2 >= 64 else capacity
-    fine = (capacity // 16, 3 * capacity // 32, 3 * capacity // 16) if capacity >= 256 else ()
-    return tuple(sorted({*fine, eighth, small, half, capacity}))
+    return tuple(sorted({*_fine_buckets(capacity), eighth, small, half, capacity}))
+
+
+def _fine_buckets(capacity: int) -> tuple[int, ...]:
+    """The sizes of :func:`_buckets` that only a buffer of at least 256 slots gets."""
+    return (capacity // 16, 3 * capacity // 32, 3 * capacity // 16) if capacity >= 256 else ()
 
 
 def _solve(model: Model, op, prob: ContactProblem):
