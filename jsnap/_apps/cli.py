@@ -41,8 +41,10 @@ def train_sdf(args) -> int:
             from jsnap._geometry.scene import scene_file
 
             scene = jsnap.load_scene(args.scene)
-            if scene["rigid"]:
-                mesh = load_rigid(scene_file(scene, "rigid.mesh"), units=scene["rigid"]["units"]).mesh
+            if scene["rigid"]:  # placed as the build places it, so that the cache key is the build's
+                r = scene["rigid"]
+                path = scene_file(scene, "rigid.mesh")
+                mesh = load_rigid(path, units=r["units"], position=r["position"], rotation=r["rotation"]).mesh
             else:
                 c = scene["connector"]
                 mesh = default_rigid(c["type"], c, scene["plug"]).mesh()

@@ -698,6 +698,33 @@ def _check_force_scale(meas: Measurement, sim_peak: float, measured_peak: float)
         )
 
 
+# The model's force counts where it is at least this fraction of its peak: where the rigid part
+# presses the part, the measured force must point the same way.
+_SIGN_FLOOR = 0.2
+
+
+def _check_force_sign(meas: Measurement, t: np.ndarray, sim: np.ndarray, measured: np.ndarray):
+    """Sign-convention errors: where the model pushes back (its insertion force positive and
+    large), the measured force must be mostly positive too. A measurement that is mostly negative
+    there is the same history with the opposite sign (a load cell that reads compression as
+    negative, a force on the rigid part rather than on the socket): no E or friction fits it, and
+    the fit would return the smallest force it can make instead of an error."""
+    sim, measured, t = (np.asarray(a, np.float64) for a in (sim, measured, t))
+    pushing = sim >= _SIGN_FLOOR * float(np.max(sim, initial=0.0))
+    if float(np.max(sim, initial=0.0)) <= 0 or pushing.sum() < 4:
+        return
+    against = float(np.mean(measured[pushing] < 0))
+    if against > 0.5 and float(np.dot(sim, measured)) < 0:
+        fname = meas.columns[1]
+        raise MeasurementError(
+            f"{meas.source}: force column {fname!r} is negative at {100 * against:.0f} % of the times "
+            f"where the model's insertion force is positive (t = {t[pushing][0]:g} to {t[pushing][-1]:g} s, "
+            f"the rigid part pressing into the part; measured median there {np.median(measured[pushing]):.4g} "
+            "N): jsnap's insertion force is positive while the part resists the rigid part; negate the "
+            "column (F = -F) and fit again"
+        )
+
+
 @x64
 def identify(
     model: Model,
@@ -742,7 +769,8 @@ def identify(
         :class:`FitResult`.
 
     Raises:
-        MeasurementError: unusable data (see :func:`load_measurement`) or units obviously off.
+        MeasurementError: unusable data (see :func:`load_measurement`), units obviously off, or
+            a force of the opposite sign to the model's.
         ValueError: unknown parameter names or non-positive starting values.
     """
     t0 = time.perf_counter()
@@ -799,6 +827,7 @@ def identify(
     theta = jnp.asarray(theta0)
     F0 = np.asarray(_force(prob, theta))
     _check_force_scale(meas, float(np.max(np.abs(F0[mask]))), float(np.max(np.abs(F_meas[mask]))))
+    _check_force_sign(meas, t_sim[mask], F0[mask], F_meas[mask])
     seeded, n_seed = None, 0
     if seed:
         theta, n_seed, seeded = _seed(obj, theta, names, progress)

@@ -16,7 +16,15 @@ import tomllib
 
 from jsnap._geometry import scene as _scene
 from jsnap._geometry.scene import CONNECTORS, REQUIRED, SCHEMA, Key, default_scene_path
-from jsnap._geometry.size import BAND, GEOMETRIC, REFERENCE_THICKNESS, REFERENCE_WALL, SIZED
+from jsnap._geometry.size import (
+    BAND,
+    GEOMETRIC,
+    MIN_ELEMENTS_ACROSS,
+    REFERENCE_THICKNESS,
+    REFERENCE_WALL,
+    SIZED,
+    WALL_ANGLE,
+)
 
 __all__ = ["render"]
 
@@ -33,7 +41,8 @@ _SECTIONS = {
     "with gmsh at solver.mesh_size; its fixed region a named group of the file or a box. Paths are "
     "relative to the scene file.",
     "rigid": "The rigid part from a file, instead of [plug]: a closed surface whose coordinates are "
-    "its pose at t = 0 in the frame of the fixed base; its frame's origin is its volume centroid. "
+    "its pose at t = 0 in the frame of the fixed base, or are placed there by `rigid.rotation` (about "
+    "the file's volume centroid) and then `rigid.position`; its frame's origin is its volume centroid. "
     'Its signed distance is the exact mesh distance (solver.sdf = "mesh", the default here) or a '
     'network trained once and cached ("neural").',
     "material": "The deformable part's linear elastic material and its Rayleigh damping "
@@ -111,6 +120,8 @@ def _number(v: float | int) -> str:
 
 
 def _value(v) -> str:
+    if isinstance(v, list):
+        return f"`[{', '.join(_number(x) for x in v)}]`"
     if isinstance(v, bool):
         return f"`{'true' if v else 'false'}`"
     if isinstance(v, str):
@@ -195,6 +206,16 @@ def _rules() -> list[str]:
         "derived latching stroke) divided by `motion.speed`, twice that with `motion.withdraw`, "
         f"divided by `solver.dt`: the contact events of a snap (ramp, flat, release) each need "
         "several steps. The error gives the largest `solver.dt` that works.",
+        "**A step must not carry the rigid part through the part.** The farthest any point of the rigid "
+        "part moves in one step (`motion.speed` times `solver.dt`, or a path's largest step: its centre's "
+        "displacement plus its turn times its radius) may be at most the part's wall (`connector.thickness`, "
+        "or a part file's measured wall); a `SceneWarning` says when it is more than "
+        f"{_scene._MAX_STEP_TRAVEL:g} contact resolution (the larger of `contact.spacing` and "
+        "`contact.margin`), where contact is found a step late and the force is off, and gives the "
+        "`solver.dt` that resolves it.",
+        f"**Friction must be a dry plastic's.** `contact.friction` may be at most {_scene._MAX_FRICTION:g}; "
+        f"a `SceneWarning` says when it is above {_scene._HIGH_FRICTION:g}, more than the design guides "
+        "list for any plastic pair.",
         "**The parts are presets or files, one of each.** `[part]` replaces `[connector]` and "
         "needs `[rigid]` (the preset plug is sized from the connector); `[rigid]` replaces `[plug]`. "
         '`[part]` takes exactly one of `part.fixed` and `part.fixed_box`; `solver.sdf = "analytic"` '
@@ -211,7 +232,11 @@ def _rules() -> list[str]:
         "`thickness`, `tip_thickness`, `width` and `undercut`; for the two-hook clip, whose hooks are "
         "meshed finer on their own, of `thickness`, `width` and `base_thickness`), and a "
         "`SceneWarning` says when it is larger than that feature itself (less than one element "
-        "across it: a coarse, stiff model).",
+        "across it: a coarse, stiff model). For a part from a file a `SceneWarning` says when the "
+        "element size, given or derived, spans its thinnest wall with fewer than "
+        f"{MIN_ELEMENTS_ACROSS['P2']} P2 or {MIN_ELEMENTS_ACROSS['P1']} P1 elements (gmsh divides a "
+        "wall's edges t long into ceil(t / solver.mesh_size) elements: for P2, elements no larger than "
+        "the wall), and suggests a size.",
     ]
 
 
@@ -236,8 +261,9 @@ def render() -> str:
         "Defaults that are lengths follow the part's size. The *wall ratio* is the part's wall "
         "thickness over the shipped part's: a preset's `connector.thickness` over its shipped "
         f"scene's ({', '.join(f'{k} {v:g} mm' for k, v in REFERENCE_THICKNESS.items())}), a part "
-        "file's measured wall thickness (the area-weighted median of its thickness along the inward "
-        f"normals) over the shipped hook's {REFERENCE_WALL:g} mm. A default marked *× wall ratio* "
+        "file's measured wall thickness (its thinnest wall: the least of its thicknesses along the "
+        f"inward normals, across to a face within {WALL_ANGLE:g} degrees of facing back) over the "
+        f"shipped hook's {REFERENCE_WALL:g} mm. A default marked *× wall ratio* "
         "(the element size, the preset rigid part's shape) is its value times the wall ratio. A "
         "default marked *× size* (the contact's resolution) is its value times the part's *size*: "
         f"1 while the wall ratio is within a factor {BAND:g} of 1, where these defaults hold as they "

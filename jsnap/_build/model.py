@@ -10,7 +10,9 @@ its memory and refuses with a message naming the setting to change. Units: mm, N
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
+import warnings
 from dataclasses import dataclass
 
 import jax
@@ -30,7 +32,7 @@ from jsnap._build.samples import (
     turned_samples,
     surface_samples,
 )
-from jsnap._build.sdf import mesh_sdf_from_trimesh
+from jsnap._build.sdf import grid_mesh_sdf, mesh_sdf_from_trimesh
 from jsnap._core.contact import ADMM, APGD, PGS, SPG
 from jsnap._core.drive import ImpedanceDrive, PositionDrive
 from jsnap._core.model import ContactSettings, MeshArrays, Model, Samples
@@ -44,20 +46,21 @@ from jsnap._geometry.size import STENCIL_SIDE, STENCIL_WIDTH
 from jsnap._geometry.scene import (
     Scene,
     SceneError,
+    SceneWarning,
     motion_keyposes,
     scene_file,
     sdf_kind,
 )
 
 __all__ = [
-    "BuildError", "BuildReport", "available_memory", "build", "build_model", "check_memory", "params_from_scene",
-    "with_capacity",
+    "BuildError", "BuildReport", "PartEstimate", "available_memory", "build", "build_model", "check_memory",
+    "check_part_size", "estimate_part", "params_from_scene", "with_capacity",
 ]  # fmt: skip
 
 _SOLVERS = {"apgd": APGD, "spg": SPG, "admm": ADMM, "pgs": PGS}
-# Slack on the mesh SDF's lower bound (the analytic rounded box it was tessellated from): covers
-# the float32 rounding of the mesh's vertices off the box (~1e-7 of its size), with room to spare.
-_MESH_SLACK = 1e-3
+# Half-width of the band about a mesh rigid part where its grid SDF is exact, in contact
+# resolutions: twice the depth the penetration flag reads (rollout.PENETRATION_DEPTH, 4).
+_GRID_BAND = 8.0
 # The same for the neural SDF, whose lower bound is the plain bounding box: the network may read
 # below it by its own error (default plug: 1.3 µm mean, 46 µm at most within 0.2 mm of the
 # surface, benchmarks/sdf_accuracy.py), so points up to 50 µm past the margin get the network too.
@@ -145,6 +148,160 @@ def check_memory(n_dof: int, method: str, available: int | None = None) -> int:
     return require(estimate, f"solver.method = {method!r} with {n_dof} dof", hint, available)
 
 
+# Volume of one tetrahedron at element size h, in h^3. gmsh's (every preset but the cantilever,
+# and surface files) fill 0.19-0.20 h^3 each on the shipped parts at their fine sizes (0.15-0.19
+# at their default ones, where the part is a few elements thick); the cantilever's structured mesh
+# 0.12-0.15 h^3 (six per cell of about h^3, more where a side is not a whole number of h). The
+# estimate is for sizes far off, so the fine sizes' values (fewer tetrahedra) are taken: it
+# counts too few, never too many (the shipped scenes' dofs 1.6-1.8 times the estimate at their
+# sizes, 1.1-1.2 at a third of them; the annular sector, one element wide, 3.8 times).
+_TET_VOLUME = {"structured": 0.14, "gmsh": 0.2}
+# Dofs per tetrahedron of a large mesh: P2 has a node at each vertex and edge midpoint, 4.5
+# dofs per tetrahedron at 100k dofs (4 in an unbounded mesh, more where surface dominates); P1
+# 0.6 (a vertex per ~5 tetrahedra).
+_DOF_PER_TET = {"P2": 4.5, "P1": 0.6}
+# The largest part benchmarks/scale.py builds: 118008 dofs, a 166 s build at a 5.3 GB peak on 2
+# cores. A part estimated beyond it warns that its build takes longer than anything measured.
+_MEASURED_DOF = 118_008
+# From this many dofs on a build takes ten seconds or more: it reports its phases (progress).
+_LONG_DOF = 20_000
+# A connector key that sets the part's volume: one whose 1 % change moves it by at least 0.3 %.
+_VOLUME_ELASTICITY = 0.3
+
+
+@dataclass
+class PartEstimate:
+    """The deformable part's size before it is meshed (:func:`estimate_part`).
+
+    Attributes:
+        volume: its volume, mm^3.   tets, dof: the elements and free dofs expected (to within
+            a factor 2).   source: what sets the volume, for messages (scene keys or the file).
+    """
+
+    volume: float
+    tets: int
+    dof: int
+    source: str
+
+
+def _volume_keys(kind: str, c) -> str:
+    """The (at most three) connector keys that set the preset's volume most, the most grown
+    from the shipped preset's first (``connector.gap = 500 mm, connector.width = 4 mm``)."""
+    import tomllib
+
+    from jsnap._geometry.presets import preset_volume
+    from jsnap._geometry.scene import CONNECTORS, default_scene_path
+
+    name = "default" if kind == "cantilever" else kind
+    try:
+        shipped = tomllib.loads((default_scene_path().parent / f"{name}.toml").read_text())["connector"]
+    except (OSError, KeyError, tomllib.TOMLDecodeError):
+        shipped = {}
+    v0, scored = preset_volume(kind, c), []
+    for key, spec in CONNECTORS[kind].items():
+        value = c.get(key)
+        if spec.unit != "mm" or not isinstance(value, float) or value <= 0:
+            continue
+        try:
+            grown = preset_volume(kind, {**c, key: value * 1.01})
+        except ValueError:
+            continue
+        elasticity = (grown / v0 - 1) / 0.01
+        if elasticity >= _VOLUME_ELASTICITY:
+            before = shipped.get(key)
+            growth = value / before if isinstance(before, int | float) and before > 0 else 1.0
+            scored.append((elasticity * max(1.0, growth), key, value))
+    top = sorted(scored, reverse=True)[:3]
+    return ", ".join(f"connector.{key} = {value:g} mm" for _, key, value in top)
+
+
+def estimate_part(scene: Scene) -> PartEstimate | None:
+    """The deformable part's volume and the elements and dofs it will be meshed into at
+    ``solver.mesh_size``, before meshing it: a preset's from its dimensions
+    (:func:`jsnap._geometry.presets.preset_volume`), a surface file's from the volume it encloses.
+    None for tetrahedra from a file (they are counted as they are read) or a file that cannot be
+    used (the build says why)."""
+    from jsnap._geometry.part import SURFACE_SUFFIXES, PartError, surface_volume
+    from jsnap._geometry.presets import preset_volume
+
+    s, c = scene["solver"], scene["connector"]
+    h = s["mesh_size"]
+    if c:
+        volume = preset_volume(c["type"], c)
+        kind = "structured" if c["type"] == "cantilever" else "gmsh"
+        source = f"{volume:.4g} mm^3 from {_volume_keys(c['type'], c)}"
+        meshed = volume
+        if c["type"] == "annular":  # a sector one element wide: as wide as an element when thinner
+            meshed *= max(1.0, h / (c["radius"] * math.radians(c["sector"])))
+    else:
+        path = scene_file(scene, "part.mesh")
+        if path.suffix.lower() not in SURFACE_SUFFIXES:
+            return None
+        try:
+            volume = surface_volume(path, scene["part"]["units"])
+        except PartError:
+            return None
+        kind, source = "gmsh", f"{volume:.4g} mm^3 enclosed by part.mesh = {scene['part']['mesh']!r}"
+        meshed = volume
+    tets = meshed / (_TET_VOLUME[kind] * h**3)
+    return PartEstimate(volume, int(tets), int(tets * _DOF_PER_TET[s["element"]]), source)
+
+
+def _count(n: int) -> str:
+    """``n`` for a message: 5742, 40.5k, 52.3 million."""
+    return str(n) if n < 10_000 else f"{n / 1e3:.3g}k" if n < 1_000_000 else f"{n / 1e6:.3g} million"
+
+
+def _round_up(x: float) -> float:
+    """``x`` rounded up to two significant digits."""
+    unit = 10.0 ** (math.floor(math.log10(x)) - 1)
+    return math.ceil(x / unit * (1 - 1e-9)) * unit
+
+
+def check_part_size(scene: Scene, available: int | None = None) -> PartEstimate | None:
+    """Refuse, before meshing, a part that the build could not hold: :func:`check_memory` of the
+    dofs :func:`estimate_part` expects, its message naming ``solver.mesh_size``, what sets the
+    part's volume and the element size that fits; warn (:class:`SceneWarning`) when the part is
+    larger than any the build is measured on. Returns the estimate (None: nothing to mesh).
+
+    Raises:
+        BuildError: the part at ``solver.mesh_size`` would not fit in memory.
+    """
+    est = estimate_part(scene)
+    if est is None:
+        return None
+    s = scene["solver"]
+    h, method = s["mesh_size"], s["method"]
+    about = (
+        f"solver.mesh_size = {h:g} mm: the part ({est.source}) would be meshed into about {_count(est.tets)} "
+        f"tetrahedra, {_count(est.dof)} {s['element']} dofs (estimated before meshing)"
+    )
+    available = available_memory() if available is None else available
+    try:
+        check_memory(est.dof, method, available)
+    except BuildError as err:
+        lo, hi = 1, est.dof  # the most dofs that fit (check_memory grows with them)
+        while hi - lo > max(1, lo // 100):
+            mid = (lo + hi) // 2
+            try:
+                check_memory(mid, method, available)
+                lo = mid
+            except BuildError:
+                hi = mid
+        fit = _round_up(h * (est.dof / lo) ** (1 / 3))
+        raise BuildError(f"{about}; {err} (here solver.mesh_size >= {fit:g} mm)") from None
+    if est.dof > _MEASURED_DOF:
+        fit = _round_up(h * (est.dof / _MEASURED_DOF) ** (1 / 3))
+        warnings.warn(
+            f"{about}: more than the largest part the build is measured on ({_count(_MEASURED_DOF)} dofs: "
+            f"about 3 minutes and 5 GB on 2 cores, benchmarks/scale.py); expect a build of many minutes, "
+            f"or use solver.mesh_size >= {fit:g} mm",
+            SceneWarning,
+            stacklevel=4,
+        )
+    return est
+
+
 @dataclass
 class _Rigid:
     """The rigid part as the build needs it: its surface in its own frame, a box about its
@@ -190,7 +347,10 @@ def _geometry(scene: Scene) -> _Geometry:
             mesh_size=s["mesh_size"],
         )
     if scene["rigid"]:
-        surface = load_rigid(scene_file(scene, "rigid.mesh"), units=scene["rigid"]["units"])
+        r = scene["rigid"]  # placed at its start pose: the SDF, the candidates and the poses see it there
+        surface = load_rigid(
+            scene_file(scene, "rigid.mesh"), units=r["units"], position=r["position"], rotation=r["rotation"]
+        )
         rigid = _Rigid(surface.mesh, surface.half, None, surface.centroid)
     else:
         plug = preset.plug
@@ -326,7 +486,11 @@ def _rigid_sdf(scene: Scene, rigid: _Rigid, report: BuildReport, progress: bool)
     # rounded cylinder too) or a plain box holding the surface.
     bound = RoundedBoxSDF(jnp.asarray(rigid.half), jnp.asarray(rigid.radius or 0.0, jnp.float64))
     if kind == "mesh":
-        return BoundedSDF(mesh_sdf_from_trimesh(rigid.mesh), bound, _MESH_SLACK)
+        # Exact within twice the depth the penetration flag reads (and so over the margin and the
+        # normals' stencil too); beyond, the side of the surface, which is all a decision needs.
+        ct = scene["contact"]
+        band = _GRID_BAND * max(float(ct["margin"]), float(ct["spacing"]))
+        return grid_mesh_sdf(mesh_sdf_from_trimesh(rigid.mesh), band, progress=progress)
     # Trained once per rigid-part mesh and settings, then cached on disk.
     net, info = load_or_train(rigid.mesh, progress=progress)
     report.sdf = info
@@ -340,14 +504,25 @@ def build_model(scene: Scene, *, progress: bool = False) -> tuple[Model, BuildRe
     report = BuildReport()
     say = print if progress else (lambda *a, **k: None)
     s, m, ct = scene["solver"], scene["motion"], scene["contact"]
+    expected = check_part_size(scene)  # in seconds, before a mesh that could not be held is made
+    if expected is not None and expected.dof >= _LONG_DOF:
+        say(
+            f"jsnap: meshing the part at solver.mesh_size = {s['mesh_size']:g} mm: about {expected.tets} tets, "
+            f"{expected.dof} dofs expected"
+        )
     g = _geometry(scene)
     mesh = g.mesh
-    check_memory(_estimate_dof(mesh, s["element"]), s["method"])
+    n_dof = _estimate_dof(mesh, s["element"])
+    check_memory(n_dof, s["method"])
+    if n_dof >= _LONG_DOF:
+        say(f"jsnap: {mesh.cells.shape[0]} tets meshed; assembling {n_dof} dofs")
     asm = assemble(mesh, s["element"])
     report.tets, report.full_dof = int(mesh.cells.shape[0]), int(asm.free.size)
     say(f"jsnap: {s['element']} mesh, {report.tets} tets, {report.full_dof} free dofs")
 
     with jax.enable_x64(True):
+        if n_dof >= _LONG_DOF:
+            say("jsnap: sampling the contact candidates on the part's surface")
         samples, sample, stencil, seeds, normals = _contact_candidates(scene, g, asm)
         report.contact_points = int(samples.rest.shape[0])
         say(f"jsnap: {report.contact_points} contact candidate points")

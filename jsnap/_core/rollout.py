@@ -155,6 +155,42 @@ def _check_controls(controls, batched: bool = False):
     return controls
 
 
+def _check_jumps(model: Model, controls, plug_start, batched: bool = False) -> None:
+    """Refuse concrete ``controls`` (from :func:`_check_controls`) whose rigid part moves farther
+    in one step (from its start to the first row, or from a row to the next; its centre, plus its
+    turn times its distance to the nearest contact candidate) than the deformable part's smallest
+    extent: a part that jumps its own size between two contact checks passes through it (the
+    force is nonsense, and nothing else flags it). Traced arrays are not checked."""
+    leaves = [controls, model.mesh.nodes, model.motion, model.samples.rest]
+    if plug_start is not None:
+        leaves.append(plug_start)
+    if any(isinstance(a, jax.core.Tracer) for a in leaves):
+        return
+    c = np.asarray(controls, np.float64).reshape(-1, *np.shape(controls)[-2:])  # (B, steps, 3 | 7)
+    start = np.asarray(model.plug_start if plug_start is None else plug_start, np.float64).reshape(-1, 3)
+    start = np.broadcast_to(start, (c.shape[0], 3))
+    jump = np.linalg.norm(np.diff(np.concatenate([start[:, None], c[..., :3]], axis=1), axis=1), axis=-1)
+    if c.shape[-1] == 7:
+        q0 = np.broadcast_to(np.asarray(model.rotation_start, np.float64), (c.shape[0], 4))
+        q = np.concatenate([q0[:, None], c[..., 3:]], axis=1)
+        turn = 2.0 * np.arccos(np.clip(np.abs(np.sum(q[:, 1:] * q[:, :-1], axis=-1)), 0.0, 1.0))
+        lever = float(np.min(np.linalg.norm(np.asarray(model.samples.rest) - start[0], axis=1)))
+        jump = jump + turn * lever
+    size = float(np.min(np.ptp(np.asarray(model.mesh.nodes), axis=0)))
+    if not jump.max() > size:
+        return
+    b, k = (int(i) for i in np.unravel_index(int(np.argmax(jump)), jump.shape))
+    where = f"rollout {b}, " if batched else ""
+    rows = f"from row {k - 1} to row {k}" if k else "from its start (plug_start) to row 0"
+    resolution = max(float(model.contact.margin), float(model.samples.spacing))
+    raise ValueError(
+        f"controls: the rigid part jumps {jump[b, k]:.4g} mm in one step ({where}{rows}), more than the "
+        f"deformable part's smallest extent ({size:.3g} mm): it would pass through the part between two "
+        f"contact checks; give one row per time step of the model (dt = {model.dt:g} s), moving at most "
+        f"about {resolution:g} mm (the contact's resolution) from one row to the next"
+    )
+
+
 def _dtype(model: Model, dtype):
     dtype = jnp.dtype(dtype or model.dtype)
     if dtype not in (jnp.float32, jnp.float64):
@@ -367,6 +403,8 @@ def rollout(
             finite or out of range.
     """
     dtype = _dtype(model, dtype)
+    if controls is not None:  # before anything is prepared or compiled
+        _check_jumps(model, _check_controls(controls), plug_start)
     if prepared is None:
         params = model.params if params is None else params
         params.check()
@@ -446,7 +484,9 @@ def rollout_batch(
     dtype = _dtype(model, dtype)
     params = model.params if params is None else params
     if controls is not None:
-        controls = jnp.asarray(_check_controls(controls, batched=True), dtype)
+        controls = _check_controls(controls, batched=True)
+        _check_jumps(model, controls, plug_start, batched=True)
+        controls = jnp.asarray(controls, dtype)
     if plug_start is not None:
         plug_start = jnp.asarray(plug_start, dtype)
         if plug_start.ndim != 2 or plug_start.shape[1] != 3:

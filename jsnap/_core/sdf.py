@@ -19,7 +19,11 @@ predict-correct path check). Implementations:
   ``jsnap._build.sdf.mesh_sdf_from_trimesh``.
 * :class:`NeuralSDF`: a trained MLP (the paper's learned SDF), evaluated here in plain JAX;
   trained on the host by ``jsnap._build.neural_sdf``.
-* :class:`BoundedSDF`: a costly SDF (mesh or network) evaluated only where a contact decision
+* :class:`GridMeshSDF`: the exact mesh distance at every point, each point tested against the
+  few triangles that can be nearest anywhere in its grid cell (lists built on the host by
+  ``jsnap._build.sdf.grid_mesh_sdf``): exact within a band about the surface, the right side
+  of it beyond, at the cost of tens of triangles per point instead of all of them.
+* :class:`BoundedSDF`: a costly SDF (a network) evaluated only where a contact decision
   needs it, with a rounded box below it as a lower bound elsewhere.
 """
 
@@ -36,6 +40,7 @@ from jsnap._core.util import safe_norm
 __all__ = [
     "AbstractSDF",
     "BoundedSDF",
+    "GridMeshSDF",
     "MeshSDF",
     "NeuralSDF",
     "RoundedBoxSDF",
@@ -458,22 +463,7 @@ def _mesh_eval(sdf, p, chunk):
         j = jax.lax.map(lambda x: _nearest_triangles(terms, x), blocks).reshape(-1)[:n_points]
 
     # Re-solve exactly on the winning triangle: this part is differentiable in p.
-    sel = jax.tree.map(lambda t: t[..., j], terms)
-    diff, feature = _closest_on_triangle(p.T - sel["a"], sel)
-    diff = diff.T  # (N, 3)
-    pseudo = jnp.concatenate([sdf.face_normal[:, None], sdf.edge_normal, sdf.vertex_normal], axis=1).astype(
-        dtype
-    )[j, feature]
-    # Bærentzen & Aanæs: the sign of (p − closest) · (pseudonormal of the closest feature)
-    # is the inside/outside test, robust at edges and vertices.
-    sign = jnp.where(jnp.sum(diff * pseudo, -1) >= 0, 1.0, -1.0).astype(dtype)
-    dist = safe_norm(diff)
-    # Below a few hundred ulps of the mesh size (p − closest) is rounding noise: use the
-    # feature's pseudonormal, which is the one-sided limit of the normal on the surface.
-    tol = 100.0 * jnp.finfo(dtype).eps * sdf.scale.astype(dtype)
-    far = dist > tol
-    normal = jnp.where(far[:, None], sign[:, None] * diff / jnp.where(far, dist, 1.0)[:, None], pseudo)
-    return sign * dist, normal
+    return _signed_on(sdf, terms, p, j, dtype)
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(2,))
@@ -537,6 +527,184 @@ def mesh_sdf(sdf, p, chunk=None):
     See :func:`mesh_sdf_and_normal` for arguments; its gradient w.r.t. ``p`` is the normal.
     """
     return mesh_sdf_and_normal(sdf, p, chunk)[0]
+
+
+# --------------------------------------------------------------------------------------------
+# Exact mesh SDF through per-cell candidate triangles
+# --------------------------------------------------------------------------------------------
+
+# Points whose exact distance is searched at once (a block of a scan, skipped past the last
+# point that needs it): the points near the rigid part number ~30 at the median and ~120 at the
+# 99th percentile of the default scene's steps, so one block serves nearly every step.
+_NEAR_BLOCK = 128
+# Codes of a fine cell (or of a whole coarse block) far from the surface, by side.
+FAR_OUTSIDE = -1
+FAR_INSIDE = -2
+# Fine cells along each side of a coarse block.
+BLOCK = 8
+
+
+class GridMeshSDF(AbstractSDF):
+    """The exact signed distance to a closed triangle mesh at every query point, each point
+    tested only against the triangles that can be nearest to some point of its grid cell.
+
+    A two-level grid covers the mesh's box grown by ``band`` and a coarse cell: coarse blocks of
+    ``BLOCK``³ fine cells of side ``cell``. A fine cell whose centre lies within ``band`` plus
+    its half-diagonal of the surface, on either side, holds a row of ``rows``: every triangle
+    whose distance from the centre is within twice the half-diagonal of the least, which
+    contains the nearest triangle of every point of the cell (``|d(p,t) − d(c,t)| ≤`` the
+    half-diagonal for every triangle). Its φ and normal are then those of the brute-force
+    :class:`MeshSDF`, exactly, with the same pseudonormal signs. Every other cell (and block) is
+    ``FAR_OUTSIDE`` or ``FAR_INSIDE``: its points are farther than ``band`` from the surface, on
+    that side, and read ``±band`` (φ is exact within ``±band``; beyond it only its side is,
+    which is all a contact decision there needs) with a unit normal from the centre ``centre``.
+
+    Built on the host by ``jsnap._build.sdf.grid_mesh_sdf``. The cost of a query is that of
+    ``rows.shape[1]`` point–triangle tests per point, whatever the mesh's size, and no point is
+    left out: the contact decision at every candidate is the exact distance's.
+
+    Attributes:
+        mesh: the brute-force :class:`MeshSDF` (its triangles and pseudonormals).
+        origin: (3,) the grid's lowest corner, mm.   cell: () fine cell side, mm.
+        dims: (3,) int32 coarse blocks along x, y, z.
+        coarse: (Bx·By·Bz,) int32 a block's index into ``blocks``, or a far code.
+        blocks: (nb, BLOCK³) int32 a fine cell's row of ``rows``, or a far code.
+        rows: (R, K) int32 candidate triangles (a short row repeats its first entry).
+        band: mm (static): φ is exact within ``±band`` of the surface.
+    """
+
+    mesh: MeshSDF
+    origin: jax.Array
+    cell: jax.Array
+    dims: jax.Array
+    coarse: jax.Array
+    blocks: jax.Array
+    rows: jax.Array
+    band: float = eqx.field(static=True)
+
+    def __call__(self, q):
+        q, shape = _mesh_points(self.mesh, q)
+        phi, n = _grid_query(self, q)
+        return phi.reshape(shape), n.reshape(*shape, 3)
+
+    def least_along(self, points, like, margin: float):
+        # The four fractions' points in one query: one pass over the codes, the near points of all
+        # four searched in the same blocks.
+        q = jnp.concatenate([points(f) for f in PATH_CHECKS])
+        return jnp.min(self(q)[0].reshape(len(PATH_CHECKS), -1), axis=0)
+
+    @property
+    def row_length(self) -> int:
+        """K, the triangles tested per point."""
+        return self.rows.shape[1]
+
+    def astype(self, dtype):
+        """The same SDF with every floating array cast to ``dtype``."""
+        return jax.tree.map(lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x, self)
+
+    def codes(self, q):
+        """(P,) int32: the row of ``rows`` that serves each point of ``q`` (P, 3), or a far code."""
+        dtype = q.dtype
+        rel = (q - self.origin.astype(dtype)) / (BLOCK * self.cell.astype(dtype))  # in blocks
+        # Floats throughout: XLA:CPU's integer division and clamps cost more than the gathers.
+        dims = self.dims.astype(dtype)
+        block = jnp.clip(jnp.floor(rel), 0.0, dims - 1.0)
+        inside = jnp.all((rel >= 0.0) & (rel < dims), axis=-1)
+        local = jnp.clip(jnp.floor(BLOCK * (rel - block)), 0.0, BLOCK - 1.0)
+        at = ((block[:, 0] * dims[1] + block[:, 1]) * dims[2] + block[:, 2]).astype(jnp.int32)
+        b = self.coarse.at[at].get(mode="promise_in_bounds")
+        cell = ((local[:, 0] * BLOCK + local[:, 1]) * BLOCK + local[:, 2]).astype(jnp.int32)
+        code = self.blocks.at[jnp.maximum(b, 0), cell].get(mode="promise_in_bounds")
+        return jnp.where(inside, jnp.where(b >= 0, code, b), FAR_OUTSIDE)
+
+
+def _grid_winners(sdf: GridMeshSDF, terms, p, code):
+    """(N,) the nearest triangle to each point of ``p`` (N, 3) among its cell's candidates
+    (``code`` (N,) its row, or a far code: then any index). Blocks of ``_NEAR_BLOCK`` points,
+    the near ones first, each skipped by a ``cond`` past the last near point: a single scene
+    pays for the points near the surface only (under ``vmap`` every block runs)."""
+    n = p.shape[0]
+    near = code >= 0
+    size = min(n, _NEAR_BLOCK)
+    n_blocks = -(-n // size)
+    # The near points first, in their order (a prefix sum and a scatter: XLA:CPU's sort of a
+    # few thousand keys costs more than the search it saves).
+    rank = jnp.cumsum(near) - 1
+    n_near = rank[-1] + 1
+    slot = jnp.where(near, rank, n_near + jnp.cumsum(~near) - 1)
+    order = jnp.zeros(n, jnp.int32).at[slot].set(jnp.arange(n, dtype=jnp.int32), unique_indices=True)
+    k = sdf.rows.shape[1]
+
+    def block(j, b):
+        def evaluate(j):
+            at = jax.lax.dynamic_slice_in_dim(order, jnp.minimum(b * size, n - size), size)
+            cand = sdf.rows[jnp.maximum(code[at], 0)]  # (size, K)
+            sel = jax.tree.map(lambda t: t[..., cand], terms)  # vectors (3, size, K), scalars (size, K)
+            diff, _ = _closest_on_triangle(p[at].T[:, :, None] - sel["a"], sel)
+            d2 = _dot3(diff, diff)
+            first = jnp.where(d2 == jnp.min(d2, axis=1, keepdims=True), jnp.arange(k, dtype=jnp.int32), k - 1)
+            return j.at[at].set(jnp.take_along_axis(cand, jnp.min(first, axis=1)[:, None], axis=1)[:, 0])
+
+        return jax.lax.cond(b * size < n_near, evaluate, lambda j: j, j), None
+
+    j, _ = jax.lax.scan(block, jnp.zeros(n, jnp.int32), jnp.arange(n_blocks))
+    return j
+
+
+def _grid_eval(sdf: GridMeshSDF, p):
+    """φ (N,) and normal (N, 3) of points ``p`` (N, 3); differentiable given the winners."""
+    dtype = p.dtype
+    # The search is discrete: the winners, out of autodiff; the re-solve on them is not.
+    p_search = jax.lax.stop_gradient(p)
+    code = sdf.codes(p_search)
+    near = code >= 0
+    terms = _triangle_terms(sdf.mesh, dtype)
+    j = _grid_winners(sdf, terms, p_search, code)
+    phi, normal = _signed_on(sdf.mesh, terms, p, j, dtype)
+
+    # Far points: their side at the band's edge, a unit normal pointing away from the centre.
+    band = jnp.asarray(sdf.band, dtype)
+    side = jnp.where(code == FAR_INSIDE, -1.0, 1.0).astype(dtype)
+    # Any unit vector serves there (no contact is made): away from the grid's centre.
+    away = p_search - (sdf.origin.astype(dtype) + 0.5 * BLOCK * sdf.cell.astype(dtype) * sdf.dims.astype(dtype))
+    length = safe_norm(away, keepdims=True)
+    unit = jnp.where(length > 0, away / jnp.where(length > 0, length, 1.0), jnp.array([1.0, 0.0, 0.0], dtype))
+    return jnp.where(near, phi, side * band), jnp.where(near[:, None], normal, side[:, None] * unit)
+
+
+def _signed_on(mesh: MeshSDF, terms, p, j, dtype):
+    """Signed distance and normal of points ``p`` (N, 3) to their triangles ``j`` (N,): the
+    brute-force SDF's re-solve on the winner (differentiable in ``p``)."""
+    sel = jax.tree.map(lambda t: t[..., j], terms)
+    diff, feature = _closest_on_triangle(p.T - sel["a"], sel)
+    diff = diff.T  # (N, 3)
+    pseudo = jnp.concatenate([mesh.face_normal[:, None], mesh.edge_normal, mesh.vertex_normal], axis=1).astype(
+        dtype
+    )[j, feature]
+    # Bærentzen & Aanæs: the sign of (p − closest) · (pseudonormal of the closest feature)
+    # is the inside/outside test, robust at edges and vertices.
+    sign = jnp.where(jnp.sum(diff * pseudo, -1) >= 0, 1.0, -1.0).astype(dtype)
+    dist = safe_norm(diff)
+    # Below a few hundred ulps of the mesh size (p − closest) is rounding noise: use the
+    # feature's pseudonormal, which is the one-sided limit of the normal on the surface.
+    tol = 100.0 * jnp.finfo(dtype).eps * mesh.scale.astype(dtype)
+    far = dist > tol
+    normal = jnp.where(far[:, None], sign[:, None] * diff / jnp.where(far, dist, 1.0)[:, None], pseudo)
+    return sign * dist, normal
+
+
+@jax.custom_jvp
+def _grid_query(sdf, p):
+    return _grid_eval(sdf, p)
+
+
+@_grid_query.defjvp
+def _grid_query_jvp(primals, tangents):
+    # As the brute-force SDF's: ∇φ = n exactly, the normal's tangent by autodiff on the winner.
+    sdf, p = primals
+    dp = tangents[1]
+    (phi, n), (_, dn) = jax.jvp(lambda x: _grid_eval(sdf, x), (p,), (dp,))
+    return (phi, n), (jnp.sum(n * dp, -1), dn)
 
 
 # --------------------------------------------------------------------------------------------
@@ -649,10 +817,6 @@ def neural_sdf_and_normal(net: NeuralSDF, p):
 
 # Points at which the costly SDF is evaluated per query, at most (the nearest by the bound).
 _NEAR_POINTS = 384
-# Block of points of those queries: the points near the rigid part number ~30 at the median
-# and ~120 at the 99th percentile of the default scene's steps, so one block serves nearly
-# every step.
-_NEAR_BLOCK = 128
 
 
 class BoundedSDF(AbstractSDF):

@@ -12,6 +12,7 @@ import numpy as np
 from jsnap._geometry.errors import SceneError
 
 __all__ = [
+    "UNIT_TOLERANCE",
     "MotionError",
     "check_poses",
     "latching_stroke",
@@ -44,6 +45,11 @@ def straight_insertion(start, speed: float, stroke: float, withdraw: bool, dt: f
     out = np.tile(np.asarray(start, dtype=np.float64), (t.size, 1))
     out[:, 2] -= travel
     return out
+
+
+# A pose's rotation is a unit quaternion if its length is 1 within this (a quaternion written
+# out to 7 digits or more).
+UNIT_TOLERANCE = 1e-6
 
 
 class MotionError(SceneError):
@@ -110,7 +116,7 @@ def check_poses(t, position, rotation, where: str) -> None:
             f"{where}: time must increase, but pose {i} has t = {t[i]:g} s after t = {t[i - 1]:g} s"
         )
     norm = np.linalg.norm(rotation, axis=1)
-    off = np.flatnonzero(np.abs(norm - 1) > 1e-6)
+    off = np.flatnonzero(np.abs(norm - 1) > UNIT_TOLERANCE)
     if off.size:
         i = int(off[0])
         raise MotionError(

@@ -20,7 +20,7 @@ import numpy as np
 
 from jsnap._geometry.errors import SceneError
 from jsnap._geometry.mesh import MeshQualityError, TetMesh, check_quality, signed_volumes
-from jsnap._geometry.size import wall_thickness
+from jsnap._geometry.size import thinnest_wall
 
 __all__ = [
     "UNITS",
@@ -29,6 +29,7 @@ __all__ = [
     "fixed_nodes",
     "load_part",
     "load_rigid",
+    "part_thinnest_wall",
     "part_wall_thickness",
 ]
 
@@ -53,6 +54,25 @@ def _check_size(points: np.ndarray, path: Path, key: str, units: str) -> None:
             f"{units!r}, outside the {_SMALLEST:g}-{_LARGEST:g} mm of snap-fit parts; are its "
             f"coordinates in {guess!r}?"
         )
+
+
+def surface_volume(path, units: str = "mm") -> float:
+    """The volume a closed surface file of the deformable part encloses, mm³ (the part before
+    it is tet-meshed), read once per version of the file (its path, size and modification time).
+
+    Raises:
+        PartError: as :func:`load_part` for a surface it cannot use.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise PartError(f"part.mesh = {str(path)!r}: no such file")
+    stat = path.stat()
+    return _volume_of(str(path.resolve()), stat.st_size, stat.st_mtime_ns, units)
+
+
+@functools.lru_cache(maxsize=32)
+def _volume_of(path: str, size: int, mtime_ns: int, units: str) -> float:
+    return float(_read_surface(Path(path), "part.mesh", units).volume)
 
 
 def _read_surface(path: Path, key: str, units: str):
@@ -200,24 +220,35 @@ def part_wall_thickness(path, units: str = "mm") -> float:
     Raises:
         PartError: as :func:`load_part` for a file it cannot read.
     """
+    return part_thinnest_wall(path, units)[0]
+
+
+def part_thinnest_wall(path, units: str = "mm") -> tuple[float, np.ndarray]:
+    """The deformable part's thinnest wall (:func:`jsnap._geometry.size.thinnest_wall`): its
+    thickness, mm, and (3,) the point of the surface it was measured from, mm (a copy).
+
+    Raises:
+        PartError: as :func:`load_part` for a file it cannot read.
+    """
     path = Path(path)
     if not path.is_file():
         raise PartError(f"part.mesh = {str(path)!r}: no such file")
     stat = path.stat()
-    return _wall_of(str(path.resolve()), stat.st_size, stat.st_mtime_ns, units)
+    wall, point = _wall_of(str(path.resolve()), stat.st_size, stat.st_mtime_ns, units)
+    return wall, point.copy()
 
 
 @functools.lru_cache(maxsize=32)
-def _wall_of(path: str, size: int, mtime_ns: int, units: str) -> float:
+def _wall_of(path: str, size: int, mtime_ns: int, units: str) -> tuple[float, np.ndarray]:
     key = "part.mesh"
     file = Path(path)
     if file.suffix.lower() in SURFACE_SUFFIXES:
         surface = _read_surface(file, key, units)
-        return wall_thickness(surface.vertices, surface.faces)
+        return thinnest_wall(surface.vertices, surface.faces)
     points, cells, _ = _read_tets(file, key, units)
     flip = signed_volumes(points, cells) < 0
     cells = np.where(flip[:, None], cells[:, [0, 2, 1, 3]], cells)
-    return wall_thickness(points, TetMesh(points, cells, np.zeros(0)).boundary_faces())
+    return thinnest_wall(points, TetMesh(points, cells, np.zeros(0)).boundary_faces())
 
 
 def _read_tets(path: Path, key: str, units: str):
@@ -301,12 +332,14 @@ def load_part(
 
 @dataclass(frozen=True, eq=False)
 class RigidSurface:
-    """The rigid part of ``[rigid]`` in its own frame.
+    """The rigid part of ``[rigid]`` in its own frame, placed at its start pose.
 
     Attributes:
-        mesh: the closed surface (``trimesh.Trimesh``), mm, centred on ``centroid``.
-        centroid: (3,) its volume centroid at t = 0 in the frame of the fixed base, mm: the
-            origin of its frame and the point rotations turn about.
+        mesh: the closed surface (``trimesh.Trimesh``), mm, centred on ``centroid`` and turned
+            to its start orientation (``rigid.rotation``).
+        centroid: (3,) its volume centroid at t = 0 in the frame of the fixed base, mm (the
+            file's, moved by ``rigid.position``): the origin of its frame and the point
+            rotations turn about.
         half: (3,) half extents of a box about the origin holding the whole surface, mm.
     """
 
@@ -315,9 +348,13 @@ class RigidSurface:
     half: np.ndarray
 
 
-def load_rigid(path, *, units: str = "mm") -> RigidSurface:
-    """The rigid part of ``[rigid]`` from a closed surface file (its coordinates: its pose at
-    t = 0 in the frame of the fixed base)."""
+def load_rigid(
+    path, *, units: str = "mm", position=(0.0, 0.0, 0.0), rotation=(1.0, 0.0, 0.0, 0.0)
+) -> RigidSurface:
+    """The rigid part of ``[rigid]`` from a closed surface file, placed at its pose at t = 0 in
+    the frame of the fixed base: the file's coordinates (in ``units``) turned by the unit
+    quaternion ``rotation`` (w, x, y, z; ``rigid.rotation``) about the file's volume centroid,
+    then moved by ``position`` (mm; ``rigid.position``). The defaults keep the file's pose."""
     path = Path(path)
     if not path.is_file():
         raise PartError(f"rigid.mesh = {str(path)!r}: no such file")
@@ -326,5 +363,11 @@ def load_rigid(path, *, units: str = "mm") -> RigidSurface:
     mesh = _read_surface(path, "rigid.mesh", units)
     centroid = np.asarray(mesh.center_mass, np.float64)
     mesh.apply_translation(-centroid)
+    q = np.asarray(rotation, np.float64)
+    if not np.array_equal(q, [1.0, 0.0, 0.0, 0.0]):
+        import trimesh
+
+        # (w, x, y, z), the motion's convention (jsnap._geometry.motion.quat_matrix).
+        mesh.apply_transform(trimesh.transformations.quaternion_matrix(q / np.linalg.norm(q)))
     half = np.max(np.abs(mesh.bounds), axis=0)
-    return RigidSurface(mesh, centroid, half)
+    return RigidSurface(mesh, centroid + np.asarray(position, np.float64), half)

@@ -67,6 +67,7 @@ __all__ = [
     "hook_of",
     "latch_section",
     "latch_tip_deflection",
+    "preset_volume",
 ]
 
 PRESETS = (
@@ -91,7 +92,7 @@ class Preset:
     """
 
     mesh: TetMesh
-    plug: Plug
+    plug: Plug | None
     stroke: float
 
 
@@ -172,6 +173,32 @@ def connector_features(kind: str, c: Mapping) -> dict[str, float]:
                 f"{c['radius']:g} mm); it must be less than the radius"
             )
         return {"thickness": c["thickness"]}
+    raise ValueError(f"connector.type = {kind!r}: must be one of {', '.join(PRESETS)}")
+
+
+def _area(section: np.ndarray) -> float:
+    """Area of a counter-clockwise polygon (k, 2), mm² (shoelace)."""
+    x, z = section[:, 0], section[:, 1]
+    return 0.5 * float(np.sum(x * np.roll(z, -1) - np.roll(x, -1) * z))
+
+
+def preset_volume(kind: str, c: Mapping) -> float:
+    """The exact volume of the preset's deformable part, mm³, from its ``[connector]`` table
+    (validated), without meshing it: its section polygons' areas times their extrusion, or (the
+    annular sector) its section turned about z by ``sector`` (Pappus: the section's first moment
+    about the axis times the angle)."""
+    if kind == "cantilever":
+        return hook_of(c).volume()
+    if kind == "two_hook_clip":
+        return _area(clip_section(c)) * c["width"]
+    if kind == "box_lid":  # the plate and the arms standing on it meet on a face, never overlap
+        return sum(_area(section) * (y1 - y0) for section, y0, y1 in box_lid_pieces(c))
+    if kind == "cable_latch":
+        return _area(latch_section(c)) * c["width"]
+    if kind == "annular":
+        p = annular_section(c)
+        r, z, r1, z1 = p[:, 0], p[:, 1], np.roll(p[:, 0], -1), np.roll(p[:, 1], -1)
+        return float(np.sum((r + r1) * (r * z1 - r1 * z)) / 6.0) * math.radians(c["sector"])
     raise ValueError(f"connector.type = {kind!r}: must be one of {', '.join(PRESETS)}")
 
 
@@ -409,10 +436,12 @@ def default_stroke(kind: str, c: Mapping, plug: Mapping, rigid: Plug) -> float:
 
 def generate(kind: str, c: Mapping, plug: Mapping, mesh_size: float) -> Preset:
     """The deformable part, default rigid part and default stroke of preset ``kind`` from its
-    ``[connector]`` and ``[plug]`` tables (validated scene values), meshed at ``mesh_size``."""
+    ``[connector]`` and ``[plug]`` tables (validated scene values), meshed at ``mesh_size``.
+    Without a ``[plug]`` table (the scene's rigid part is a file) there is no default rigid part
+    or stroke: both are None."""
     hook = hook_of(c)
-    rigid = default_rigid(kind, c, plug)
-    stroke = default_stroke(kind, c, plug, rigid)
+    rigid = default_rigid(kind, c, plug) if plug else None
+    stroke = default_stroke(kind, c, plug, rigid) if plug else None
     if kind == "cantilever":
         return Preset(mesh_cantilever(hook, mesh_size), rigid, stroke)
     fine = _hook_size(hook, mesh_size)

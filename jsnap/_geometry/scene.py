@@ -15,6 +15,7 @@ Units: mm, N, MPa, s, tonne (density in t/mm^3), angles in degrees.
 
 from __future__ import annotations
 
+import functools
 import math
 import tomllib
 import warnings
@@ -29,10 +30,18 @@ import numpy as np
 
 from jsnap._geometry.cantilever import Cantilever
 from jsnap._geometry.errors import SceneError, SceneWarning
-from jsnap._geometry.motion import read_pose_csv
-from jsnap._geometry.part import PartError, part_wall_thickness
+from jsnap._geometry.motion import UNIT_TOLERANCE, read_pose_csv
+from jsnap._geometry.part import PartError, part_thinnest_wall, part_wall_thickness
 from jsnap._geometry.presets import connector_features, default_rigid, default_stroke, hook_of
-from jsnap._geometry.size import GEOMETRIC, REFERENCE_WALL, SIZED, preset_ratio, size_of
+from jsnap._geometry.size import (
+    GEOMETRIC,
+    MIN_ELEMENTS_ACROSS,
+    REFERENCE_WALL,
+    SIZED,
+    elements_across,
+    preset_ratio,
+    size_of,
+)
 
 __all__ = [
     "MIN_STEPS",
@@ -54,6 +63,8 @@ __all__ = [
 
 
 REQUIRED = object()
+# The largest contact.friction accepted (see the key).
+_MAX_FRICTION = 2.0
 
 
 @dataclass(frozen=True)
@@ -147,6 +158,21 @@ def _parse_direction(name, value):
     return d
 
 
+def _parse_rotation(name, value):
+    """A unit quaternion (w, x, y, z), normalised; refused when zero or more than
+    ``UNIT_TOLERANCE`` off unit length (as the waypoints' rotations)."""
+    q = np.asarray(_numbers(value, (4,), name))
+    norm = float(np.linalg.norm(q))
+    if norm == 0:
+        raise SceneError(f"{name} = {value!r}: must not be zero; [1, 0, 0, 0] is no rotation")
+    if abs(norm - 1) > UNIT_TOLERANCE:
+        raise SceneError(
+            f"{name} = {value!r}: not a unit quaternion (|q| = {norm:.9g}); give (w, x, y, z) with "
+            f"w^2 + x^2 + y^2 + z^2 = 1 (within {UNIT_TOLERANCE:g})"
+        )
+    return (q / norm).tolist()
+
+
 def _parse_waypoints(name, value):
     if not isinstance(value, list) or not all(isinstance(w, Mapping) for w in value):
         raise SceneError(
@@ -175,6 +201,8 @@ _PARSERS = {
     "part.fixed_box": _parse_box,
     "motion.direction": _parse_direction,
     "motion.waypoints": _parse_waypoints,
+    "rigid.position": lambda name, value: _numbers(value, (3,), name),
+    "rigid.rotation": _parse_rotation,
 }
 
 
@@ -349,9 +377,29 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "mesh": Key(
             str,
             doc="the rigid part, instead of the preset plug: a closed surface (STL/OBJ/PLY), its coordinates "
-            "its pose at t = 0 in the frame of the fixed base; relative to the scene file",
+            "its pose at t = 0 in the frame of the fixed base (placed by rigid.rotation and rigid.position); "
+            "relative to the scene file",
         ),
         "units": _UNITS,
+        "position": Key(
+            list,
+            [0.0, 0.0, 0.0],
+            "mm",
+            doc="the rigid part's start position: a translation of the file's coordinates (after "
+            "rigid.rotation) in the frame of the fixed base; its frame's origin, the volume centroid at "
+            "t = 0, is the file's centroid plus this",
+            shape="[x, y, z]",
+        ),
+        "rotation": Key(
+            list,
+            [1.0, 0.0, 0.0, 0.0],
+            "",
+            doc="the rigid part's start orientation: a unit quaternion (w, x, y, z) that turns the file's "
+            "coordinates about their volume centroid (before rigid.position). Normalised when its length "
+            "is 1 within 1e-6 (as the waypoints' rotations), refused when farther off or zero. The motion's "
+            "rotations turn the part from this pose",
+            shape="[w, x, y, z]",
+        ),
     },
     "material": {
         "youngs_modulus": _pos("MPa", doc="E, Young's modulus"),
@@ -361,7 +409,12 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "rayleigh_beta": _nonneg("s", 0.0, "stiffness-proportional Rayleigh damping"),
     },
     "contact": {
-        "friction": _nonneg("", 0.3, "Coulomb friction coefficient between the parts"),
+        # Snap-fit design guides list dry Coulomb friction of 0.1-0.7 for plastics on steel and up
+        # to about twice that for a plastic on itself; above 2 the tangential force would be twice
+        # the normal force, which no such pair gives (a percentage or an angle given by mistake).
+        "friction": Key(
+            float, 0.3, "", 0.0, _MAX_FRICTION, doc="Coulomb friction coefficient between the parts"
+        ),
         "capacity": Key(
             int,
             64,
@@ -536,6 +589,20 @@ SCHEMA: dict[str, dict[str, Key]] = {
     },
 }
 
+# Beyond this contact.friction warns: above what the design guides list for any plastic pair.
+_HIGH_FRICTION = 1.5
+# What to do when a key is out of its range, where the range alone does not say it.
+_RANGE_HINTS = {
+    "contact.friction": "dry Coulomb friction of plastics is 0.1-0.7 on steel and up to about twice that "
+    "on themselves; give the coefficient itself (0.3, not 30 %, not an angle)",
+}
+# The rigid part may move at most this many contact resolutions (the larger of contact.spacing
+# and contact.margin) per step unwarned. A point is a contact candidate within the margin of the
+# rigid part, and candidates lie a spacing apart: a part that moves farther in one step reaches
+# points the step's contact did not hold, which the predict-correct pass catches a step late, so
+# the force wanders. The default scene's peak force (reduced, float32; 5.103 N at 0.5 resolutions
+# per step, dt 1 ms): -0.7 % at 1 (dt 2 ms), +3.7 % at 1.5, +2.1 % at 2, +9.8 % at 5 (dt 10 ms).
+_MAX_STEP_TRAVEL = 1.0
 # A motion shorter than this many steps is refused: the contact events of a snap (ramp, flat,
 # release) each need several steps to be resolved at all.
 MIN_STEPS = 20
@@ -579,7 +646,8 @@ def _coerce(name: str, spec: Key, value: Any, internal: bool) -> Any:
     if spec.kind in (float, int):
         problem = spec.check(value)
         if problem:
-            raise SceneError(f"{name} = {value!r}: {problem}")
+            hint = f": {_RANGE_HINTS[name]}" if name in _RANGE_HINTS else ""
+            raise SceneError(f"{name} = {value!r}: {problem}{hint}")
     return value
 
 
@@ -684,8 +752,8 @@ class Scene:
                     values[key] = _coerce(name, spec, supplied[key], internal or not set_here)
                 elif spec.default is REQUIRED:
                     raise SceneError(f"{name} is required but missing ({spec.doc})")
-                else:
-                    values[key] = spec.default
+                else:  # a list default copied: no scene shares it
+                    values[key] = list(spec.default) if isinstance(spec.default, list) else spec.default
             sections[section] = MappingProxyType(values)
         if given is None:
             given = {f"{s}.{k}" for s, table in raw.items() if isinstance(table, Mapping) for k in table}
@@ -694,6 +762,7 @@ class Scene:
         _check_files(scene)
         scene = _sized(scene)
         _check_consistency(scene)
+        _check_part_elements(scene)
         return scene
 
 
@@ -907,6 +976,95 @@ def _check_annular(scene: Scene) -> None:
         )
 
 
+@functools.lru_cache(maxsize=32)
+def _rigid_file_radius(path: str, size: int, mtime_ns: int, units: str) -> float:
+    """The largest distance of a [rigid] file's surface from its centroid, mm (0: unreadable,
+    the build says why)."""
+    from jsnap._geometry.part import load_rigid
+
+    try:
+        return float(np.linalg.norm(load_rigid(path, units=units).half))
+    except PartError:
+        return 0.0
+
+
+def _rigid_radius(scene: Scene) -> float:
+    """How far the rigid part's surface reaches from the centre its rotations turn about, mm."""
+    if not scene["rigid"]:
+        c, p = scene["connector"], scene["plug"]
+        return float(np.linalg.norm(default_rigid(c["type"], c, p).half))
+    path = scene_file(scene, "rigid.mesh")
+    stat = path.stat()
+    return _rigid_file_radius(str(path.resolve()), stat.st_size, stat.st_mtime_ns, scene["rigid"]["units"])
+
+
+def _part_wall(scene: Scene) -> tuple[float, str] | None:
+    """The deformable part's wall, mm, and where it comes from (None: a file that cannot be read)."""
+    c = scene["connector"]
+    if c:
+        if c.get("tip_thickness") is not None and c["tip_thickness"] < c["thickness"]:
+            return float(c["tip_thickness"]), f"connector.tip_thickness = {c['tip_thickness']:g} mm"
+        return float(c["thickness"]), f"connector.thickness = {c['thickness']:g} mm"
+    try:
+        wall = part_wall_thickness(scene_file(scene, "part.mesh"), scene["part"]["units"])
+    except PartError:
+        return None
+    return wall, f"{wall:.3g} mm, measured on part.mesh"
+
+
+def _round_down(x: float) -> float:
+    """``x`` rounded down to two significant digits (a limit that still holds once rounded)."""
+    unit = 10.0 ** (math.floor(math.log10(x)) - 1)
+    return math.floor(x / unit * (1 + 1e-9)) * unit
+
+
+def _check_step_travel(scene: Scene) -> None:
+    """The rigid part's travel in one step (the farthest any point of it moves: its centre's
+    displacement plus its turn times its radius) against the part's wall (an error: it would
+    pass through the wall between two contact checks) and the contact's resolution (a warning,
+    naming the time step that resolves it)."""
+    s, m, ct = scene["solver"], scene["motion"], scene["contact"]
+    dt = s["dt"]
+    keys = motion_keyposes(scene)
+    if keys is None:
+        travel, at = m["speed"] * dt, 0
+        what, times = f"motion.speed = {m['speed']:g} mm/s", None
+    else:
+        from jsnap._geometry.motion import sample_poses
+
+        poses = sample_poses(*keys, np.zeros(3), dt)
+        dq = np.abs(np.sum(poses[1:, 3:] * poses[:-1, 3:], axis=1))
+        turn = 2.0 * np.arccos(np.clip(dq, -1.0, 1.0))
+        steps = np.linalg.norm(np.diff(poses[:, :3], axis=0), axis=1)
+        if np.any(turn > 0):
+            steps = steps + turn * _rigid_radius(scene)
+        at = int(np.argmax(steps))
+        travel = float(steps[at])
+        key = "motion.waypoints" if m["waypoints"] is not None else f"motion.trajectory = {m['trajectory']!r}"
+        what, times = key, (at * dt, (at + 1) * dt)
+    when = f" between t = {times[0]:.6g} and {times[1]:.6g} s" if times else ""
+    wall = _part_wall(scene)
+    resolution = max(ct["spacing"], ct["margin"])
+    if wall is not None and travel > wall[0]:
+        n = math.ceil(travel / (_MAX_STEP_TRAVEL * resolution))
+        raise SceneError(
+            f"{what}: the rigid part moves {travel:.4g} mm in one step of solver.dt = {dt:g} s{when}, more "
+            f"than the part's wall ({wall[1]}): it would pass through the part between two contact checks; "
+            f"give that move at least {n} steps ({n * dt:.3g} s at this solver.dt: a step per {resolution:g} "
+            "mm, the contact's resolution), or check the motion's times and units"
+        )
+    if travel > _MAX_STEP_TRAVEL * resolution * (1 + 1e-9):  # equal but for rounding is not larger
+        fine = dt * _MAX_STEP_TRAVEL * resolution / travel
+        warnings.warn(
+            f"solver.dt = {dt!r}: the rigid part moves {travel:.3g} mm per step ({what}{when}), "
+            f"{travel / resolution:.3g} times the contact's resolution ({resolution:g} mm, the larger of "
+            "contact.spacing and contact.margin): contact is found a step late and the force is off (the "
+            f"default scene's peak by +9.8 % at solver.dt = 0.01); use solver.dt <= {_round_down(fine):g} s",
+            SceneWarning,
+            stacklevel=5,
+        )
+
+
 def _check_consistency(scene: Scene) -> None:
     """Checks that involve several keys: geometry that cannot be built or cannot be modelled,
     plug sizes, a motion too short for the time step, elements too coarse for the features."""
@@ -948,6 +1106,15 @@ def _check_consistency(scene: Scene) -> None:
             f"solver.dt = {s['dt']!r}: the motion ({how}) would take {steps:.3g} steps; at least "
             f"{MIN_STEPS} are needed to resolve the contact: use solver.dt <= {duration / MIN_STEPS:.3g} s"
         )
+    if ct["friction"] > _HIGH_FRICTION:
+        warnings.warn(
+            f"contact.friction = {ct['friction']!r} is above {_HIGH_FRICTION:g}, beyond the dry friction of "
+            "plastics (0.1-0.7 on steel, up to about twice that on themselves): the parts would stick where "
+            "a snap-fit slides; check the value",
+            SceneWarning,
+            stacklevel=4,
+        )
+    _check_step_travel(scene)
     if not c:
         return
     name, thinnest = min(features.items(), key=lambda kv: kv[1])
@@ -961,6 +1128,31 @@ def _check_consistency(scene: Scene) -> None:
         warnings.warn(
             f"solver.mesh_size = {s['mesh_size']!r} is larger than connector.{name} = {thinnest:g} mm, the "
             "thinnest feature: fewer than one element across it (a coarse, stiff model)",
+            SceneWarning,
+            stacklevel=4,
+        )
+
+
+def _check_part_elements(scene: Scene) -> None:
+    """A part from a file: warn when the element size, given or derived, puts fewer than
+    ``MIN_ELEMENTS_ACROSS`` elements across its thinnest wall (the wall the default follows)."""
+    if not scene["part"]:
+        return
+    try:
+        wall, where = part_thinnest_wall(scene_file(scene, "part.mesh"), scene["part"]["units"])
+    except PartError:
+        return  # a file that cannot be used: jsnap.build says why
+    s = scene["solver"]
+    need = MIN_ELEMENTS_ACROSS[s["element"]]
+    across = elements_across(wall, s["mesh_size"])
+    if across < need:
+        how = "" if scene.is_set("solver.mesh_size") else " (its default)"
+        at = ", ".join(f"{x:.3g}" for x in where)
+        warnings.warn(
+            f"solver.mesh_size = {s['mesh_size']:.4g}{how} spans the thinnest wall of part.mesh "
+            f"({wall:.3g} mm, measured from ({at}) mm) with {across} element(s), fewer than {need} for "
+            f"{s['element']} elements: a coarse, stiff model of the walls that bend; use solver.mesh_size <= "
+            f"{wall / (need - 0.5):.3g}",
             SceneWarning,
             stacklevel=4,
         )

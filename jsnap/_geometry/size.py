@@ -7,8 +7,9 @@ larger they are ten times too fine. Each follows the part's *wall ratio* ``r``, 
 thickness over the shipped part's:
 
 - for a preset, ``connector.thickness`` over the shipped preset's (:data:`REFERENCE_THICKNESS`);
-- for a part from a file, its wall thickness (:func:`wall_thickness` of its surface) over the
-  shipped hook's, 1.2 mm (that hook's surface measures exactly its arm's thickness).
+- for a part from a file, its wall thickness (:func:`wall_thickness` of its surface: its thinnest
+  wall, the walls that bend) over the shipped hook's, 1.2 mm (that hook's surface measures
+  exactly its arm's thickness).
 
 Two kinds of defaults follow it, each left unset being its value on the shipped parts times:
 
@@ -27,13 +28,14 @@ A key given in the scene keeps its value.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 
 import numpy as np
 
 __all__ = [
-    "GEOMETRIC", "REFERENCE_THICKNESS", "REFERENCE_WALL", "SIZED", "preset_ratio", "preset_size", "size_of",
-    "wall_thickness",
+    "GEOMETRIC", "MIN_ELEMENTS_ACROSS", "REFERENCE_THICKNESS", "REFERENCE_WALL", "SIZED", "elements_across",
+    "preset_ratio", "preset_size", "size_of", "thinnest_wall", "wall_thickness",
 ]  # fmt: skip
 
 # connector.thickness of each shipped preset scene (jsnap/scenes/*.toml).
@@ -75,6 +77,16 @@ OVERSHOOT = 0.3
 
 # Within this factor of the shipped parts' walls the contact's resolution defaults hold as they are.
 BAND = 2.0
+# Two faces within this angle of facing each other bound a wall (a ray from one crosses the wall
+# to the other); a ray that leaves through a face at a steeper angle crossed a wedge (a hook's
+# lead ramp meeting its tip), an edge or a corner, not a wall. 15 degrees is the angle at which a
+# surface's facets count as one face where jsnap tet-meshes it (jsnap._geometry.part).
+WALL_ANGLE = 15.0
+# The fewest elements across a part's thinnest wall (elements_across) below which a scene warns.
+# P2: 2, that is elements no larger than the wall (the presets' own warning; P2 at one element
+# across the reference arm bends 2.6 % short, at the default 0.8 mm, 1.5 per wall, 1.0 %:
+# docs/validation.md). P1 locks in bending and needs more: 3, elements at most half the wall.
+MIN_ELEMENTS_ACROSS = {"P2": 2, "P1": 3}
 
 
 def size_of(ratio: float) -> float:
@@ -99,16 +111,43 @@ def preset_size(connector: Mapping) -> float:
     return size_of(preset_ratio(connector))
 
 
-def wall_thickness(vertices: np.ndarray, faces: np.ndarray, rays: int = 512) -> float:
-    """The wall thickness of a closed surface, mm: the median, weighted by area, of its
-    thickness along the inward normal (a ray from each face's centroid to the surface's other
-    side).
+def elements_across(wall: float, mesh_size: float) -> int:
+    """The elements across a wall ``wall`` mm thick at element size ``mesh_size``: the element
+    edges it takes to span it, as gmsh divides an edge of length ``t`` at size ``h`` into
+    ``ceil(t / h)`` segments, within 1 % (an edge 1.005 h long stays one segment, one 1.02 h
+    long becomes two; gmsh 4.15).
 
-    A snap-fit part is thin-walled: most of its surface faces a wall's other side across the
-    wall, so the median is the thickness of the walls that make most of its area (the default
-    hook: its arm, 1.2 mm; a plate: its thickness). Faces that look along a wall (its edges)
-    see farther and are outweighed. For a large surface ``rays`` faces are taken at evenly
-    spaced quantiles of the cumulative area, each standing for an equal share of it.
+    This counts along the wall's surface. Inside, gmsh's tetrahedra may be fewer layers thick:
+    the shipped hook.stl at 0.8 mm (two across its 1.2 mm arm by this count) has one layer of
+    tetrahedra through the arm, nodes on its faces only; its peak force is within 2.5 % of the
+    structured mesh's at that size (docs/own-connector.md).
+    """
+    return max(1, math.ceil(float(wall) / float(mesh_size) - 0.01))
+
+
+def wall_thickness(vertices: np.ndarray, faces: np.ndarray, rays: int = 512) -> float:
+    """The wall thickness of a closed surface, mm: its thinnest wall (:func:`thinnest_wall`)."""
+    return thinnest_wall(vertices, faces, rays)[0]
+
+
+def thinnest_wall(vertices: np.ndarray, faces: np.ndarray, rays: int = 512) -> tuple[float, np.ndarray]:
+    """The thinnest wall of a closed surface: its thickness, mm, and (3,) the point of the
+    surface it was measured from.
+
+    A wall's thickness is measured along the inward normal: a ray from a face's centroid to the
+    surface's other side, where it leaves through a face within :data:`WALL_ANGLE` of facing it
+    (a ray that leaves through a steeper face crossed a wedge, an edge or a corner). The walls
+    that bend in a snap-fit are its thin ones: the arm of a hook, not the base or the housing it
+    stands on, nor the lip at its end. So the thinnest wall is taken, not a typical one: the
+    median by area, used before, measured the bulk of the surface, and a printed hook with
+    6 x 7 mm arms on a 40 x 40 x 20 mm base measured 20 mm (its base), which made 13.3 mm
+    elements, one across the arms. The thinnest wall resolves every wall the element size
+    follows; a thin wall that does not bend (a fixed flange) costs a finer mesh, not a wrong
+    force. The default hook measures its arm, 1.2 mm; a plate its thickness; a tube its wall.
+
+    For a large surface ``rays`` faces are taken at evenly spaced quantiles of the cumulative
+    area, each standing for an equal share of it: a wall of less than about 1/``rays`` of the
+    surface's area may go unseen.
     """
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64)
@@ -124,30 +163,35 @@ def wall_thickness(vertices: np.ndarray, faces: np.ndarray, rays: int = 512) -> 
     if good.sum() > rays:
         cum = np.cumsum(np.where(good, area, 0.0))
         picks = np.searchsorted(cum, (np.arange(rays) + 0.5) / rays * cum[-1])
-        weights = np.ones(rays)
     else:
         picks = np.flatnonzero(good)
-        weights = area[picks]
     origin = tri[picks].mean(axis=1)
     direction = -normal[picks]  # inward, for an outward-wound surface
-    t = _first_hits(origin, direction, tri[good], eps=1e-9 * float(np.linalg.norm(np.ptp(v, axis=0))))
+    eps = 1e-9 * float(np.linalg.norm(np.ptp(v, axis=0)))
+    t, hit = _first_hits(origin, direction, tri[good], eps=eps, which=True)
     seen = np.isfinite(t)
     if not seen.any():
         raise ValueError(
             "no ray from the surface meets its other side: is the surface closed and wound outward?"
         )
-    t, weights = t[seen], weights[seen]
-    order = np.argsort(t)
-    cum = np.cumsum(weights[order])
-    return float(t[order][np.searchsorted(cum, 0.5 * cum[-1])])
+    # The face it leaves through faces the ray's own face: along the ray, within WALL_ANGLE.
+    facing = np.zeros_like(seen)
+    facing[seen] = np.einsum("rk,rk->r", direction[seen], normal[good][hit[seen]]) >= np.cos(
+        np.radians(WALL_ANGLE)
+    )
+    if not facing.any():  # no two faces face each other (a tetrahedron): the nearest other side
+        facing = seen
+    i = int(np.flatnonzero(facing)[np.argmin(t[facing])])
+    return float(t[i]), origin[i]
 
 
-def _first_hits(origin, direction, tri, eps: float, chunk: int = 2_000_000) -> np.ndarray:
+def _first_hits(origin, direction, tri, eps: float, chunk: int = 2_000_000, which: bool = False):
     """(R,) distance along each ray to the nearest triangle beyond ``eps`` (inf: none), by the
     Moller-Trumbore test; edges and vertices count as hits (a ray through a shared edge of a
-    structured mesh hits it)."""
+    structured mesh hits it). ``which``: also (R,) the index of that triangle (0 where none)."""
     a, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
     best = np.full(origin.shape[0], np.inf)
+    index = np.zeros(origin.shape[0], np.int64)
     step = max(1, chunk // max(1, tri.shape[0]))
     for i in range(0, origin.shape[0], step):
         o, d = origin[i : i + step, None, :], direction[i : i + step, None, :]
@@ -162,5 +206,8 @@ def _first_hits(origin, direction, tri, eps: float, chunk: int = 2_000_000) -> n
             t = np.einsum("rtk,tk->rt", q, e2) * inv
             tol = 1e-9
             hit = (np.abs(det) > 1e-30) & (u >= -tol) & (w >= -tol) & (u + w <= 1 + tol) & (t > eps)
-        best[i : i + step] = np.min(np.where(hit, t, np.inf), axis=1)
-    return best
+        t = np.where(hit, t, np.inf)
+        nearest = np.argmin(t, axis=1)
+        index[i : i + step] = nearest
+        best[i : i + step] = np.take_along_axis(t, nearest[:, None], axis=1)[:, 0]
+    return (best, index) if which else best
