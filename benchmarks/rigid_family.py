@@ -191,20 +191,9 @@ def plot(out: dict, path: Path) -> None:
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(max(8, 0.6 * len(cases)), 8), sharex=True)
     x = np.arange(len(cases))
     for k, (key, colour) in enumerate((("grid", "C0"), ("brute", "C2"), ("bounded", "C3"))):
-        a1.bar(
-            x + (k - 1) * 0.27,
-            [out["cases"][c][key]["decision_mismatches_max"] for c in cases],
-            0.27,
-            color=colour,
-            label=key,
-        )
-        a2.bar(
-            x + (k - 1) * 0.27,
-            [out["cases"][c][key]["steps_per_second"] for c in cases],
-            0.27,
-            color=colour,
-            label=key,
-        )
+        for ax, field in ((a1, "decision_mismatches_max"), (a2, "steps_per_second")):
+            values = [out["cases"][c][key][field] for c in cases]
+            ax.bar(x + (k - 1) * 0.27, values, 0.27, color=colour, label=key)
     a1.set_ylabel("most candidates per step decided\nagainst the exact distance")
     a2.set_ylabel("steps/s (median)")
     a2.set_xticks(x, cases, rotation=60, ha="right", fontsize=8)

@@ -63,11 +63,7 @@ def surface_volume(path, units: str = "mm") -> float:
     Raises:
         PartError: as :func:`load_part` for a surface it cannot use.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise PartError(f"part.mesh = {str(path)!r}: no such file")
-    stat = path.stat()
-    return _volume_of(str(path.resolve()), stat.st_size, stat.st_mtime_ns, units)
+    return _volume_of(*_file_version(path), units)
 
 
 @functools.lru_cache(maxsize=32)
@@ -230,12 +226,18 @@ def part_thinnest_wall(path, units: str = "mm") -> tuple[float, np.ndarray]:
     Raises:
         PartError: as :func:`load_part` for a file it cannot read.
     """
+    wall, point = _wall_of(*_file_version(path), units)
+    return wall, point.copy()
+
+
+def _file_version(path) -> tuple[str, int, int]:
+    """A part file's resolved path, size and modification time: the key of what is read once
+    per version of it."""
     path = Path(path)
     if not path.is_file():
         raise PartError(f"part.mesh = {str(path)!r}: no such file")
     stat = path.stat()
-    wall, point = _wall_of(str(path.resolve()), stat.st_size, stat.st_mtime_ns, units)
-    return wall, point.copy()
+    return str(path.resolve()), stat.st_size, stat.st_mtime_ns
 
 
 @functools.lru_cache(maxsize=32)
