@@ -482,9 +482,6 @@ def _rigid_sdf(scene: Scene, rigid: _Rigid, report: BuildReport, progress: bool)
     if kind == "analytic":
         exact = RoundedCylinderSDF if rigid.shape == "cylinder" else RoundedBoxSDF
         return exact(jnp.asarray(rigid.half), jnp.asarray(rigid.radius, jnp.float64))
-    # A lower bound that culls far points cheaply: the rounded box itself (preset; it holds a
-    # rounded cylinder too) or a plain box holding the surface.
-    bound = RoundedBoxSDF(jnp.asarray(rigid.half), jnp.asarray(rigid.radius or 0.0, jnp.float64))
     if kind == "mesh":
         # Exact within twice the depth the penetration flag reads (and so over the margin and the
         # normals' stencil too); beyond, the side of the surface, which is all a decision needs.
@@ -494,6 +491,7 @@ def _rigid_sdf(scene: Scene, rigid: _Rigid, report: BuildReport, progress: bool)
     # Trained once per rigid-part mesh and settings, then cached on disk.
     net, info = load_or_train(rigid.mesh, progress=progress)
     report.sdf = info
+    # A lower bound that culls far points cheaply: a plain box holding the surface.
     bound = RoundedBoxSDF(jnp.asarray(rigid.half), jnp.asarray(0.0, jnp.float64))
     return BoundedSDF(net, bound, _NEURAL_SLACK)
 

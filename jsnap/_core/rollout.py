@@ -404,7 +404,8 @@ def rollout(
     """
     dtype = _dtype(model, dtype)
     if controls is not None:  # before anything is prepared or compiled
-        _check_jumps(model, _check_controls(controls), plug_start)
+        controls = _check_controls(controls)
+        _check_jumps(model, controls, plug_start)
     if prepared is None:
         params = model.params if params is None else params
         params.check()
@@ -415,9 +416,7 @@ def rollout(
             "rollout got both params and prepared: prepared = prepare(model, params) holds the "
             "parameters it was made from; pass one of them"
         )
-    if controls is None:
-        controls = model.motion[1:]
-    controls = jnp.asarray(_check_controls(controls), dtype)
+    controls = jnp.asarray(model.motion[1:] if controls is None else controls, dtype)
     plug_start = jnp.asarray(model.plug_start if plug_start is None else plug_start, dtype)
     if plug_start.shape != (3,):
         raise ValueError(
