@@ -491,8 +491,17 @@ def line_reach(X: np.ndarray, group: np.ndarray, order: np.ndarray):
 
 def _triangle_at(P2, u: float, v: float, tol: float) -> int:
     """Index into the patch's triangles ``P2`` (T, 3, 2) of one that holds (u, v) (the first)."""
-    q = np.array([[u, v]])
-    return next((t for t in range(P2.shape[0]) if _inside(P2[t : t + 1], q, tol)[0]), 0)
+    # Every triangle at once: a loop over a long patch's triangles, one call each, was most of
+    # the sampling's time on a part with long faces.
+    a, b, c = P2[:, 0], P2[:, 1], P2[:, 2]
+    q = np.array([u, v])
+
+    def side(s, e):
+        return (e[:, 0] - s[:, 0]) * (q[1] - s[:, 1]) - (e[:, 1] - s[:, 1]) * (q[0] - s[:, 0])
+
+    d1, d2, d3 = side(a, b), side(b, c), side(c, a)
+    inside = ((d1 >= -tol) & (d2 >= -tol) & (d3 >= -tol)) | ((d1 <= tol) & (d2 <= tol) & (d3 <= tol))
+    return int(np.argmax(inside)) if inside.any() else 0
 
 
 def _sound(stencil, triangle, n, area: float):
