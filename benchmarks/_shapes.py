@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import equinox as eqx
 import numpy as np
 import trimesh
 
@@ -106,3 +107,12 @@ def _extrude(section, depth):
     if m.volume < 0:
         m.invert()
     return m
+
+
+def with_distance(rigid, make):
+    """The rigid part's SDF with its mesh distance (a ``GridMeshSDF``) replaced by
+    ``make(grid)``: inside the edge rounding (``contact.edge_radius``) where there is one, so the
+    replacement answers for the same rounded surface."""
+    if hasattr(rigid, "inner"):
+        return eqx.tree_at(lambda r: r.inner, rigid, make(rigid.inner))
+    return make(rigid)

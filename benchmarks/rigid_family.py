@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from _common import code_version, write_result
-from _shapes import SHAPES, Hook, shape
+from _shapes import SHAPES, Hook, shape, with_distance
 
 import jsnap
 from jsnap._core.pose import quat_matrix
@@ -89,15 +89,18 @@ def case_scene(folder: Path, name: str, part: str, tilted: bool, changes: dict |
 
 
 def variants(model) -> dict:
-    """The model with each of the three SDFs: the grid (as built), brute force, bounded."""
-    grid = model.rigid
-    mesh = grid.mesh
-    corners = np.abs(np.concatenate([np.asarray(mesh.a), np.asarray(mesh.b), np.asarray(mesh.c)]))
-    box = RoundedBoxSDF(jnp.asarray(corners.max(0)), jnp.asarray(0.0, jnp.float64))
+    """The model with each of the three SDFs: the grid (as built), brute force, bounded (each
+    within the edge rounding, if any)."""
+
+    def bounded(grid):
+        mesh = grid.mesh
+        corners = np.abs(np.concatenate([np.asarray(mesh.a), np.asarray(mesh.b), np.asarray(mesh.c)]))
+        return BoundedSDF(mesh, RoundedBoxSDF(jnp.asarray(corners.max(0)), jnp.asarray(0.0, jnp.float64)), 1e-3)
+
     return {
         "grid": model,
-        "brute": dataclasses.replace(model, rigid=mesh),
-        "bounded": dataclasses.replace(model, rigid=BoundedSDF(mesh, box, 1e-3)),
+        "brute": dataclasses.replace(model, rigid=with_distance(model.rigid, lambda g: g.mesh)),
+        "bounded": dataclasses.replace(model, rigid=with_distance(model.rigid, bounded)),
     }
 
 
@@ -140,7 +143,8 @@ def run_case(folder: Path, name: str, part: str, tilted: bool, rounds: int, refi
     build_s = time.perf_counter() - t0
     models = variants(model)
     prepared = jsnap.prepare(model)
-    row = {"build_s": build_s, "grid_row_length": int(model.rigid.row_length), "points": int(model.n_samples)}
+    grid = getattr(model.rigid, "inner", model.rigid)
+    row = {"build_s": build_s, "grid_row_length": int(grid.row_length), "points": int(model.n_samples)}
     results = {}
     for key, m in models.items():
         res = jsnap.rollout(m, prepared=prepared, keep_x=True)
@@ -149,7 +153,7 @@ def run_case(folder: Path, name: str, part: str, tilted: bool, rounds: int, refi
         row[key] = {
             "status": res.status(),
             "peak_insertion_force_N": peak,
-            "decision_mismatches_max": int(decision_mismatches(m, model.rigid.mesh, res).max()),
+            "decision_mismatches_max": int(decision_mismatches(m, models["brute"].rigid, res).max()),
         }
     ref = np.asarray(results["brute"].insertion_force)
     scale = max(float(np.max(np.abs(ref))), 1e-9)

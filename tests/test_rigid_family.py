@@ -16,7 +16,7 @@ import trimesh
 
 import jsnap
 from jsnap._build.sdf import grid_mesh_sdf, mesh_sdf_from_trimesh
-from jsnap._core.sdf import GridMeshSDF, mesh_sdf_and_normal
+from jsnap._core.sdf import PATH_CHECKS, GridMeshSDF, mesh_sdf_and_normal
 
 BENCH = Path(__file__).resolve().parent.parent / "benchmarks"
 sys.path.insert(0, str(BENCH))
@@ -80,6 +80,24 @@ def test_grid_gradient_is_the_normal(family):
     np.testing.assert_allclose(np.asarray(g)[band], np.asarray(n)[band], atol=1e-9, err_msg=name)
 
 
+def test_grid_path_minimum_on_the_needed_points(family):
+    """``least_along`` with a mask: at the needed points the least brute-force distance over the
+    path's four fractions (signed in the search, exact in the band; the side beyond it)."""
+    name, mesh, exact, grid = family
+    rng = np.random.default_rng(4)
+    start = _points(mesh, rng, n=400)
+    step = rng.normal(0.0, 0.05, start.shape)  # paths of ~0.1 mm, a few contact resolutions
+    need = rng.random(len(start)) < 0.6
+    with jax.enable_x64(True):
+        path = lambda f: jnp.asarray(start + f * step)  # noqa: E731
+        least = np.asarray(grid.least_along(path, None, 0.02, jnp.asarray(need)))
+        ref = np.min([np.asarray(mesh_sdf_and_normal(exact, start + f * step)[0]) for f in PATH_CHECKS], axis=0)
+    band = need & (np.abs(ref) < BAND)
+    assert band.sum() > 100, name
+    np.testing.assert_allclose(least[band], ref[band], atol=1e-12, err_msg=name)
+    assert np.all(np.sign(least[need]) == np.sign(ref[need])), name
+
+
 def test_grid_vmaps_and_jits():
     mesh, _ = shapes.shape("cylinder", HOOK)
     mesh.apply_translation(-mesh.center_mass)
@@ -110,10 +128,11 @@ def test_sleeve_around_the_arm_rolls_out_as_the_brute_force_distance(tmp_path):
     )
     (tmp_path / "scene.toml").write_text(text)
     model = jsnap.build(jsnap.load_scene(tmp_path / "scene.toml"))
-    assert isinstance(model.rigid, GridMeshSDF)
+    assert isinstance(getattr(model.rigid, "inner", model.rigid), GridMeshSDF)
     prepared = jsnap.prepare(model)
     res = jsnap.rollout(model, prepared=prepared)
-    ref = jsnap.rollout(dataclasses.replace(model, rigid=model.rigid.mesh), prepared=prepared)
+    brute = shapes.with_distance(model.rigid, lambda grid: grid.mesh)
+    ref = jsnap.rollout(dataclasses.replace(model, rigid=brute), prepared=prepared)
     assert res.ok, res.status()
     assert ref.ok, ref.status()
     F, F_ref = np.asarray(res.insertion_force), np.asarray(ref.insertion_force)

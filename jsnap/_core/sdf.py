@@ -69,9 +69,12 @@ class AbstractSDF(eqx.Module):
         default evaluates everywhere."""
         return self(q)
 
-    def least_along(self, points, like, margin: float):
+    def least_along(self, points, like, margin: float, need=None):
         """(P,) least signed distance of ``points(f)`` (P, 3) over the fractions
-        :data:`PATH_CHECKS` of a step's straight path (the predict-correct check)."""
+        :data:`PATH_CHECKS` of a step's straight path (the predict-correct check).
+
+        ``need`` (P,) bool, or None for all: the points whose value the caller reads; an SDF
+        may skip the others (their values are then unspecified)."""
         return jnp.min(jnp.stack([self.scene_query(points(f), margin)[0] for f in PATH_CHECKS]), axis=0)
 
 
@@ -195,7 +198,7 @@ class RoundedBoxSDF(AbstractSDF):
     def __call__(self, q):
         return rounded_box_sdf_and_normal(q, self.half, self.radius)
 
-    def least_along(self, points, like, margin: float):
+    def least_along(self, points, like, margin: float, need=None):
         return _least_in_loop(self, points, like)
 
 
@@ -281,7 +284,7 @@ class RoundedCylinderSDF(AbstractSDF):
             jnp.asarray(q, dtype), jnp.asarray(self.half, dtype), jnp.asarray(self.radius, dtype)
         )
 
-    def least_along(self, points, like, margin: float):
+    def least_along(self, points, like, margin: float, need=None):
         return _least_in_loop(self, points, like)
 
 
@@ -587,11 +590,18 @@ class GridMeshSDF(AbstractSDF):
         phi, n = _grid_query(self, q)
         return phi.reshape(shape), n.reshape(*shape, 3)
 
-    def least_along(self, points, like, margin: float):
-        # The four fractions' points in one query: one pass over the codes, the near points of all
-        # four searched in the same blocks.
-        q = jnp.concatenate([points(f) for f in PATH_CHECKS])
-        return jnp.min(self(q)[0].reshape(len(PATH_CHECKS), -1), axis=0)
+    def least_along(self, points, like, margin: float, need=None):
+        # The four fractions' points in one query: one pass over the codes, the near points of
+        # all four (of those needed) searched in the same blocks, φ signed there and only there.
+        q = jax.lax.stop_gradient(jnp.concatenate([points(f) for f in PATH_CHECKS]))
+        code = self.codes(q)
+        if need is not None:
+            code = jnp.where(jnp.tile(need, len(PATH_CHECKS)), code, FAR_OUTSIDE)
+        terms = _triangle_terms(self.mesh, q.dtype)
+        _, phi = _grid_winners(self, terms, q, code, signed=True)
+        band = jnp.asarray(self.band, q.dtype)
+        phi = jnp.where(code >= 0, phi, jnp.where(code == FAR_INSIDE, -band, band))
+        return jnp.min(phi.reshape(len(PATH_CHECKS), -1), axis=0)
 
     @property
     def row_length(self) -> int:
@@ -618,11 +628,15 @@ class GridMeshSDF(AbstractSDF):
         return jnp.where(inside, jnp.where(b >= 0, code, b), FAR_OUTSIDE)
 
 
-def _grid_winners(sdf: GridMeshSDF, terms, p, code):
+def _grid_winners(sdf: GridMeshSDF, terms, p, code, signed: bool = False):
     """(N,) the nearest triangle to each point of ``p`` (N, 3) among its cell's candidates
     (``code`` (N,) its row, or a far code: then any index). Blocks of ``_NEAR_BLOCK`` points,
     the near ones first, each skipped by a ``cond`` past the last near point: a single scene
-    pays for the points near the surface only (under ``vmap`` every block runs)."""
+    pays for the points near the surface only (under ``vmap`` every block runs).
+
+    With ``signed``, also the (N,) signed distance of each near point (0 at the others),
+    signed in the block by :func:`_signed_on`'s pseudonormal test: no pass over all N points.
+    Not differentiable."""
     n = p.shape[0]
     near = code >= 0
     size = min(n, _NEAR_BLOCK)
@@ -635,20 +649,25 @@ def _grid_winners(sdf: GridMeshSDF, terms, p, code):
     order = jnp.zeros(n, jnp.int32).at[slot].set(jnp.arange(n, dtype=jnp.int32), unique_indices=True)
     k = sdf.rows.shape[1]
 
-    def block(j, b):
-        def evaluate(j):
+    def block(carry, b):
+        def evaluate(carry):
             at = jax.lax.dynamic_slice_in_dim(order, jnp.minimum(b * size, n - size), size)
             cand = sdf.rows[jnp.maximum(code[at], 0)]  # (size, K)
             sel = jax.tree.map(lambda t: t[..., cand], terms)  # vectors (3, size, K), scalars (size, K)
             diff, _ = _closest_on_triangle(p[at].T[:, :, None] - sel["a"], sel)
             d2 = _dot3(diff, diff)
             first = jnp.where(d2 == jnp.min(d2, axis=1, keepdims=True), jnp.arange(k, dtype=jnp.int32), k - 1)
-            return j.at[at].set(jnp.take_along_axis(cand, jnp.min(first, axis=1)[:, None], axis=1)[:, 0])
+            win = jnp.take_along_axis(cand, jnp.min(first, axis=1)[:, None], axis=1)[:, 0]
+            if not signed:
+                return carry.at[at].set(win)
+            phi, _ = _signed_on(sdf.mesh, terms, p[at], win, p.dtype)
+            return carry[0].at[at].set(win), carry[1].at[at].set(phi)
 
-        return jax.lax.cond(b * size < n_near, evaluate, lambda j: j, j), None
+        return jax.lax.cond(b * size < n_near, evaluate, lambda c: c, carry), None
 
-    j, _ = jax.lax.scan(block, jnp.zeros(n, jnp.int32), jnp.arange(n_blocks))
-    return j
+    j = jnp.zeros(n, jnp.int32)
+    out, _ = jax.lax.scan(block, (j, jnp.zeros(n, p.dtype)) if signed else j, jnp.arange(n_blocks))
+    return out
 
 
 def _grid_eval(sdf: GridMeshSDF, p):
