@@ -29,13 +29,15 @@ import math
 import sys
 import tempfile
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 __all__ = [
-    "NORMAL_DISSIPATION_LIMIT", "OutputError", "check_out_dir", "design_guide_force", "design_guide_strain",
-    "energy_to_peak", "run_sizing_buffer", "simulate",
+    "NORMAL_DISSIPATION_LIMIT", "PEAK_FORCE_STEPS", "OutputError", "bending_wall", "check_out_dir",
+    "design_guide_force", "design_guide_strain", "energy_to_peak", "peak_force", "run_sizing_buffer",
+    "simulate",
 ]  # fmt: skip
 
 
@@ -138,6 +140,44 @@ def design_guide_force(scene) -> float | None:
     P = b * h**2 * m["youngs_modulus"] * eps / (6 * L)
     mu, ta = scene["contact"]["friction"], math.tan(math.radians(c["lead_angle"]))
     return _HOOKS[c["type"]] * P * (mu + ta) / (1 - mu * ta)
+
+
+# The headline peak force is the peak of the insertion force's running median over this many
+# steps (centred): a value of one step that stands out from both its neighbours (a contact
+# point's impulse put into one step, or a hand-over's, taken back in the next) is left out,
+# while a curve smooth over a few steps keeps its peak but for one step's rise before a snap.
+# The largest single step stays in the summary as a diagnostic.
+PEAK_FORCE_STEPS = 3
+
+
+def peak_force(force) -> tuple[float, int]:
+    """The headline peak insertion force of a force history (n,), N, and its step: the largest
+    value of the running median over :data:`PEAK_FORCE_STEPS` consecutive steps (centred; at
+    the ends and around steps whose force is not finite, the median of the finite values the
+    window has). NaN, -1 where no step is finite."""
+    F = np.asarray(force, dtype=np.float64)
+    if not np.isfinite(F).any():
+        return math.nan, -1
+    half = PEAK_FORCE_STEPS // 2
+    padded = np.pad(np.where(np.isfinite(F), F, np.nan), half, constant_values=np.nan)
+    windows = np.lib.stride_tricks.sliding_window_view(padded, PEAK_FORCE_STEPS)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN window
+        median = np.nanmedian(windows, axis=1)
+    k = int(np.nanargmax(median))
+    return float(median[k]), k
+
+
+def bending_wall(scene) -> float:
+    """The wall thickness the bending strain is read in, mm (:func:`jsnap._build.strain.bending_strain`):
+    a preset's ``connector.thickness``; a part file's thinnest wall."""
+    c = scene["connector"]
+    if c:
+        return float(c["thickness"])
+    from jsnap._geometry.part import part_thinnest_wall
+    from jsnap._geometry.scene import scene_file
+
+    return float(part_thinnest_wall(scene_file(scene, "part.mesh"), scene["part"]["units"])[0])
 
 
 def _finite(x):
@@ -287,13 +327,17 @@ def arm_elements(nodes: np.ndarray, cells: np.ndarray, arm: tuple[float, float] 
     return np.all((vert[..., 2] <= z_max + tol) & (vert[..., 0] <= x_max + tol), axis=1)
 
 
-def write_series(model, res, out: Path, arm: tuple[float, float] | float | None, frames: int = 100):
+def write_series(
+    model, res, out: Path, arm: tuple[float, float] | float | None, frames: int = 100, bending=None
+):
     """The strain of every step and the deformed part at about ``frames`` times as a ParaView
     series (``vtu/socket.pvd``, with each element's largest principal strain and von Mises
     stress as cell data). Returns ``(pvd path, {"part": PeakStrain, "arm": PeakStrain})``:
     the peaks of the whole run over every element and over the arm's (every vertex at
     ``x <= x_max`` and ``z <= z_max`` for ``arm = (x_max, z_max)`` mm, see :func:`arm_box`; a
-    number is ``z_max``; no "arm" for ``arm = None``, a part from a file)."""
+    number is ``z_max``; no "arm" for ``arm = None``, a part from a file), and with a
+    ``bending`` region (:func:`jsnap._build.strain.bending_region`) ``"bending"``: the
+    :class:`jsnap._build.strain.BendingStrain` read there, the rollout's contacts left out."""
     from jsnap._build.strain import scan
     from jsnap._geometry.mesh import write_vtu_series
 
@@ -305,7 +349,8 @@ def write_series(model, res, out: Path, arm: tuple[float, float] | float | None,
     if arm is not None:
         regions["arm"] = arm_elements(nodes, cells, arm)
     t = np.asarray(res.t, dtype=np.float64)
-    peaks, kept = scan(model, x, t, E, nu, keep=keep, regions=regions)
+    contacts = None if bending is None else (np.asarray(res.contact_index), np.asarray(res.contact_active))
+    peaks, kept = scan(model, x, t, E, nu, keep=keep, regions=regions, bending=bending, contacts=contacts)
     cell_data = {"max_principal_strain": kept["max_principal"], "von_mises_stress_MPa": kept["von_mises"]}
     pvd = write_vtu_series(
         out / "vtu",
@@ -333,6 +378,22 @@ def _strain_fields(prefix: str, peak, res) -> dict:
         f"{prefix}peak_strain_travel_mm": _finite(np.asarray(res.travel)[k]) if k is not None else None,
         f"{prefix}peak_strain_position_mm": [_finite(c) for c in peak.position] if k is not None else None,
         f"{prefix}peak_von_mises_MPa": _finite(peak.von_mises) if peak.von_mises_step >= 0 else None,
+    }
+
+
+def _bending_fields(bend) -> dict:
+    """How the summary's bending strain was found (:class:`jsnap._build.strain.BendingStrain`)."""
+    found = None
+    if bend.step >= 0:
+        found = "extrapolated to a singular edge" if bend.at_edge else "read away from the singular edges"
+    region = bend.region
+    return {
+        "bending_strain_found": found,
+        "bending_wall_mm": _finite(bend.wall),
+        "bending_singular_edges": int(region.edges.shape[0]),
+        "bending_paths": int(region.root.shape[0]),
+        "bending_strain_readout_mm": [_finite(d) for d in bend.readout_distance] if bend.at_edge else None,
+        "bending_strain_readout": [_finite(v) for v in bend.readout] if bend.at_edge else None,
     }
 
 
@@ -427,7 +488,10 @@ def simulate(args) -> int:
     title = f"jsnap: {name}, {model.method} {model.element}, {model.n_dof} dof, dt = {model.dt * 1e3:g} ms"
     png = plot_forces(res, out, guide, title)
     t3 = time.perf_counter()
-    pvd, peaks = write_series(model, res, out, arm_box(scene["connector"]))
+    from jsnap._build.strain import bending_region
+
+    wall = bending_wall(scene)
+    pvd, peaks = write_series(model, res, out, arm_box(scene["connector"]), bending=bending_region(model, wall))
     t_strain = time.perf_counter() - t3
     warnings = []
     if widened_from is not None:
@@ -448,6 +512,7 @@ def simulate(args) -> int:
     if lost is not None:
         warnings.append(lost)
     peak = int(np.nanargmax(F)) if np.isfinite(F).any() else 0
+    headline, at_headline = peak_force(F)
     reduction = report.reduction or {}
     summary = {
         "scene": scene.source,
@@ -467,6 +532,11 @@ def simulate(args) -> int:
         "compile_seconds": t_compile,
         "run_seconds": t_run,
         "reduction_cached": reduction.get("cached"),
+        # The headline peak force: the peak of the running median over peak_force_steps steps.
+        "peak_force_N": _finite(headline),
+        "travel_at_peak_force_mm": _finite(np.asarray(res.travel)[at_headline]) if at_headline >= 0 else None,
+        "peak_force_steps": PEAK_FORCE_STEPS,
+        # The largest single step's force: a diagnostic (a one-step contact impulse shows here).
         "peak_insertion_force_N": _finite(np.nanmax(F)) if np.isfinite(F).any() else None,
         "travel_at_peak_mm": _finite(np.asarray(res.travel)[peak]),
         "peak_base_force_N": _finite(np.nanmax(np.linalg.norm(base, axis=1)))
@@ -480,6 +550,12 @@ def simulate(args) -> int:
         "peak_base_moment_Nmm": _finite(np.nanmax(np.linalg.norm(np.asarray(res.base_moment), axis=1)))
         if np.isfinite(np.asarray(res.base_moment)).any()
         else None,
+        # The headline strain: in the bending region, away from the singular edges and the
+        # contacts (jsnap._build.strain.bending_strain), and how it was found.
+        **_strain_fields("bending_", peaks["bending"], res),
+        **_bending_fields(peaks["bending"]),
+        # Diagnostics: the largest strain over the whole part (at a singular edge or a contact
+        # where there is one) and over a preset's arm box.
         **_strain_fields("", peaks["part"], res),
         **_strain_fields("arm_", peaks.get("arm"), res),
         "design_guide_strain": design_guide_strain(scene),
@@ -508,23 +584,34 @@ def simulate(args) -> int:
     else:
         for w in warnings:
             print(f"jsnap: warning: {w}", file=sys.stderr)
-        if summary["peak_insertion_force_N"] is not None:
-            peak, at = summary["peak_insertion_force_N"], summary["travel_at_peak_mm"]
+        if summary["peak_force_N"] is not None:
+            peak, at = summary["peak_force_N"], summary["travel_at_peak_force_mm"]
             rate, real = summary["steps_per_second"], summary["real_time_factor"]
             copies = summary["ring_copies"]
             ring = "" if copies is None else f" (a 1/{copies:g} sector: the whole ring's {copies * peak:.1f} N)"
             print(
                 f"jsnap: {F.size} steps ({model.method} model, {model.n_dof} dof), peak insertion force "
                 f"{peak:.3f} N at {at:.3f} mm{'' if guide is None else f' (design guide {guide:.3f} N)'}"
-                f"{ring}; "
+                f"{ring} ({PEAK_FORCE_STEPS}-step running median; largest single step "
+                f"{summary['peak_insertion_force_N']:.3f} N); "
                 f"{rate:.0f} steps/s "
                 f"({real:.1f}x real time); build {t_build:.1f} s, compile {t_compile:.1f} s; wrote {out}/"
             )
-        for prefix, what in (("arm_", "in the arm"), ("", "over the part")):
+        how = {
+            "extrapolated to a singular edge": "extrapolated to a sharp edge from 1-3 walls out",
+            "read away from the singular edges": "away from the sharp edges",
+        }.get(summary["bending_strain_found"], "")
+        for prefix, what in (
+            ("bending_", f"in the bending region ({how}, wall {summary['bending_wall_mm']:.3g} mm)"),
+            ("arm_", "in the arm box (diagnostic)"),
+            ("", "over the part (diagnostic: singular at sharp edges and contacts)"),
+        ):
             if summary[f"{prefix}peak_strain"] is None:
                 continue
             eps, where = summary[f"{prefix}peak_strain"], summary[f"{prefix}peak_strain_position_mm"]
-            guide_eps = f" (design guide {100 * summary['design_guide_strain']:.3f} %)" if prefix else ""
+            guide_eps = ""
+            if prefix == "bending_" and summary["design_guide_strain"] is not None:
+                guide_eps = f" (design guide {100 * summary['design_guide_strain']:.3f} %)"
             print(
                 f"jsnap: peak strain {what} {100 * eps:.3f} %{guide_eps}, largest principal, at travel "
                 f"{summary[f'{prefix}peak_strain_travel_mm']:.3f} mm, (x, y, z) = ({where[0]:.2f}, "
