@@ -308,6 +308,21 @@ def _cable_latch(d):
     return text
 
 
+def _headline_convergence(d):
+    rows = [r for r in d["rows"] if "change" in r]
+    parts = ", ".join(
+        f"{r['case']} {100 * r['change']['peak_force_N']:.1f} / {100 * r['change']['bending_strain']:.1f}"
+        f" ({100 * r['change']['part_max_strain']:.0f})"
+        for r in rows
+    )
+    skipped = [r["case"] for r in d["rows"] if "change" not in r]
+    tail = f"; not run to two meshes: {', '.join(skipped)}" if skipped else ""
+    return (
+        f"change from each case's mesh to 0.8 times it, % of the peak force / the bending strain (the whole "
+        f"part's largest strain): {parts}{tail}"
+    )
+
+
 def _gallery(d):
     parts = []
     for name, r in d["presets"].items():
@@ -663,6 +678,13 @@ BENCHMARKS = [
         "the annular snap's force against the density of its contact candidates, against CalculiX",
         False,
         _annular_spacing,
+        timed=False,
+    ),
+    Bench(
+        "headline_convergence",
+        "the summary's peak force and bending strain at two meshes on every preset and example",
+        False,
+        _headline_convergence,
         timed=False,
     ),
     Bench(

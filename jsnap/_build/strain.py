@@ -20,6 +20,13 @@ Measures, per point:
   axial strain under uniaxial stress for every ``nu``;
 - ``von_mises``: the von Mises stress ``sqrt(3/2 s:s) = E / (1 + nu) sqrt(3/2 e:e)``, MPa.
 
+Where: :func:`peak_strain` is the largest value over every element (or those given), which on
+a part with a clamped sharp edge, a sharp inside corner or a point contact is a singular value
+that grows as the mesh is refined; :func:`bending_strain` is the strain where a designer reads
+it, in the region that bends, extrapolated to those edges from one to three walls out and read
+as it is away from them, the contacts of each step left out (its region found on the mesh by
+:func:`bending_region`, for a preset and a part from a file alike).
+
 The displacement of a rollout's steps comes from ``Result.x`` (a rollout with
 ``keep_x=True``) through ``model.part.free_displacement``: one matrix product per batch of steps
 for a reduced or modal part. Memory is bounded by working through the steps in batches; nothing
