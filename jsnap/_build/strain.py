@@ -667,9 +667,9 @@ class BendingRegion:
         points: (R, J, 3) each path's read-out points on the free surface, ``READ_FROM`` to
             ``READ_TO`` walls from its root across the face.
         cell: (R, J) their elements; bary: (R, J, 4) their barycentric coordinates there.
-        vertices: (K, 2) the (element, local vertex) pairs at least ``READ_FROM`` walls from
-            every singular edge: the region away from the edges, where the strain is read as it
-            is.
+        vertices: (K, 2) the (element, local vertex) pairs at least ``SINGULAR_ZONE`` walls
+            from every singular edge: the region away from the edges, where the strain is read
+            as it is.
         vertex_position: (K, 3) their positions.
     """
 
@@ -929,8 +929,8 @@ def bending_strain(model, result, *, wall: float, params=None, region: BendingRe
       edges, :func:`singular_edges`), along paths across the faces beside it, the surface
       strain ``READ_FROM`` = 1 to ``READ_TO`` = 3 walls from the edge is fitted by a straight
       line and extrapolated to the edge: on a bent arm's root, the root's nominal strain;
-    - everywhere at least 1 wall from those edges, the strain is read as it is, at the element
-      vertices (where each element's largest value lies);
+    - everywhere at least ``SINGULAR_ZONE`` = 1.5 walls from those edges, the strain is read as
+      it is, at the element vertices (where each element's largest value lies);
     - points within ``CONTACT_CLEARANCE`` = 1 wall of a contact point active in that step are
       not read (a path with such a point is left out for that step).
 
