@@ -161,13 +161,15 @@ def run_case(folder: Path, name: str, part: str, tilted: bool, rounds: int, refi
         row[key]["max_force_difference_rel"] = float(
             np.max(np.abs(np.asarray(results[key].insertion_force) - ref)) / scale
         )
-    # Steps/s: interleaved rounds, medians.
+    # Steps/s: interleaved rounds after one untimed run each (the rollouts above kept x, another
+    # program), medians; none with --rounds 0.
     times = {key: [] for key in models}
-    for _ in range(rounds):
+    for r in range(rounds + 1 if rounds else 0):
         for key, m in models.items():
-            times[key] += timed(m, prepared, 1)
+            t = timed(m, prepared, 1)
+            times[key] += t if r else []
     steps = model.motion.shape[0] - 1
-    for key in models:
+    for key in models if rounds else ():
         row[key]["steps_per_second"] = steps / float(np.median(times[key]))
     row["load_average"] = os.getloadavg()[0]
     if refine:
@@ -192,19 +194,37 @@ def plot(out: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     cases = list(out["cases"])
+    rows = [out["cases"][c] for c in cases]
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(max(8, 0.6 * len(cases)), 8), sharex=True)
     x = np.arange(len(cases))
+    timed = all("steps_per_second" in r["grid"] for r in rows)
     for k, (key, colour) in enumerate((("grid", "C0"), ("brute", "C2"), ("bounded", "C3"))):
-        for ax, field in ((a1, "decision_mismatches_max"), (a2, "steps_per_second")):
-            values = [out["cases"][c][key][field] for c in cases]
-            ax.bar(x + (k - 1) * 0.27, values, 0.27, color=colour, label=key)
+        at = x + (k - 1) * 0.27
+        a1.bar(at, [r[key]["decision_mismatches_max"] for r in rows], 0.27, color=colour, label=key)
+        if timed:
+            a2.bar(at, [r[key]["steps_per_second"] for r in rows], 0.27, color=colour, label=key)
+    if timed:
+        a2.set_ylabel("steps/s (median)")
+    else:  # a full run: how far each grid peak moves under refinement
+        change = [100 * (r["refined"]["peak_ratio"] - 1) if "refined" in r else np.nan for r in rows]
+        a2.bar(x, change, 0.5, color="C0")
+        for level in (-3, 3):
+            a2.axhline(level, color="k", lw=0.8, ls="--")
+        a2.set_ylabel("peak change under refinement (%)\n(half the spacing, 0.75x elements)")
     a1.set_ylabel("most candidates per step decided\nagainst the exact distance")
-    a2.set_ylabel("steps/s (median)")
     a2.set_xticks(x, cases, rotation=60, ha="right", fontsize=8)
     a1.legend()
     a1.set_title(f"Rigid parts nobody tuned for, default settings (CPU, {os.cpu_count()} cores)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+
+
+def _interleaved() -> list:
+    """Every (shape, part, tilt) once, ordered so that each run of four cases covers the four
+    (part, tilt) pairs with different shapes: a run stopped part-way has measured all of them."""
+    pairs = [(p, t) for p in ("preset", "file") for t in (False, True)]
+    n = len(SHAPES)
+    return [(SHAPES[k % n], *pairs[(k + k // n) % len(pairs)]) for k in range(n * len(pairs))]
 
 
 def main(argv=None) -> None:
@@ -213,15 +233,12 @@ def main(argv=None) -> None:
     ap.add_argument(
         "--refine", action="store_true", help="also the peak at half the contact spacing, 0.75x elements"
     )
-    ap.add_argument("--rounds", type=int, default=5, help="interleaved timing rounds")
+    ap.add_argument("--rounds", type=int, default=5, help="interleaved timing rounds (0: no timings)")
     args = ap.parse_args(argv)
     jsnap.configure_xla_cpu()
-    cases = (
-        [(n, "preset", False) for n in ("cylinder", "sleeve")]
-        if args.quick
-        else [(n, p, t) for p in ("preset", "file") for t in (False, True) for n in SHAPES]
-    )
+    cases = [(n, "preset", False) for n in ("cylinder", "sleeve")] if args.quick else _interleaved()
     out = {"code": code_version(), "cases": {}}
+    stem = "rigid_family_quick" if args.quick else "rigid_family"
     with tempfile.TemporaryDirectory() as tmp:
         for name, part, tilted in cases:
             key = f"{name}/{part}/{'tilted' if tilted else 'straight'}"
@@ -238,9 +255,10 @@ def main(argv=None) -> None:
                 },
                 flush=True,
             )
-    name = "rigid_family_quick" if args.quick else "rigid_family"
-    write_result(out, HERE / "results" / f"{name}.json")
-    plot(out, HERE / "results" / f"{name}.png")
+            # Written after every case: a long run stopped part-way keeps what it measured.
+            out["complete"] = len(out["cases"]) == len(cases)
+            write_result(out, HERE / "results" / f"{stem}.json")
+    plot(out, HERE / "results" / f"{stem}.png")
 
 
 if __name__ == "__main__":

@@ -308,6 +308,36 @@ def _cable_latch(d):
     return text
 
 
+def _rigid_family(d):
+    rows = list(d["cases"].values())
+    ok = sum(r["grid"]["status"] == "ok" for r in rows)
+    wrong = max(r["grid"]["decision_mismatches_max"] for r in rows)
+    bounded = max(r["bounded"]["decision_mismatches_max"] for r in rows)
+    text = (
+        f"{len(rows)} cases{'' if d.get('complete', True) else ' (stopped part-way)'}: grid status ok in {ok}, "
+        f"at most {wrong} candidates per step decided against the exact distance "
+        f"(former bounded search: {bounded})"
+    )
+    moves = [abs(r["refined"]["peak_ratio"] - 1) for r in rows if "refined" in r]
+    if moves:
+        text += f"; peak moves at most {100 * max(moves):.1f} % under refinement"
+    if all("steps_per_second" in r["grid"] for r in rows):
+        text += "; steps/s grid / brute force / bounded: " + ", ".join(
+            "/".join(f"{r[k]['steps_per_second']:.0f}" for k in ("grid", "brute", "bounded")) for r in rows
+        )
+    return text
+
+
+def _pin_case(d):
+    first, finest = d["runs"][0], d["runs"][-1]
+    return (
+        f"defaults ({first['mesh_size_mm']:.2g} mm elements): {first['status']}, "
+        f"{first['peak_insertion_force_N']:.3g} N, "
+        f"{100 * (first['peak_ratio_to_finest'] - 1):+.1f} % from the finest run "
+        f"({finest['mesh_size_mm']:.2g} mm, spacing {finest['contact_spacing_mm']:g} mm)"
+    )
+
+
 def _headline_convergence(d):
     rows = [r for r in d["rows"] if "change" in r]
     parts = ", ".join(
@@ -678,6 +708,20 @@ BENCHMARKS = [
         "the annular snap's force against the density of its contact candidates, against CalculiX",
         False,
         _annular_spacing,
+        timed=False,
+    ),
+    Bench(
+        "rigid_family",
+        "exact contact against rigid parts nobody tuned for: decisions, forces, refinement, speed",
+        True,
+        _rigid_family,
+        args=("--refine", "--rounds", "0"),
+    ),
+    Bench(
+        "pin_case",
+        "a cylindrical pin on a tapered hook from STL files, defaults against refined",
+        True,
+        _pin_case,
         timed=False,
     ),
     Bench(
