@@ -23,9 +23,10 @@ from jsnap._build.fem import Assembly, assemble, output_rows, sparse_blocks
 from jsnap._build.memory import BuildError, available_memory, require
 from jsnap._build.modal import modal_part
 from jsnap._build.neural_sdf import load_or_train
-from jsnap._build.reduce import build_part
+from jsnap._build.reduce import build_part, check_reduction
 from jsnap._build.samples import (
     locate_on_faces,
+    near_path,
     reachable_faces,
     line_reach,
     section_samples,
@@ -441,6 +442,12 @@ def _contact_candidates(scene: Scene, g: _Geometry, asm: Assembly):
         X, normals, corner, stencil, group, order = surface_samples(
             mesh, lo, hi, g.axis, ct["spacing"], ct["width_spacing"], scene.size
         )
+        # Only where the rigid part's surface passes near, not all its swept box holds (a
+        # housing's box encloses the prongs it slides along): the contact region, and with it
+        # the reduction's order, grows with the faces it touches, not with its travel.
+        near = near_path(X, rigid.mesh.vertices, rigid.mesh.faces, poses, reach)
+        X, normals, corner, stencil, order = X[near], normals[near], corner[near], stencil[near], order[near]
+        _, group = np.unique(group[near], return_inverse=True)
     if X.shape[0] == 0:
         raise BuildError("no contact candidate on the part's surface where the rigid part passes")
     nodes, weights, owner = locate_on_faces(asm, faces, X, normals[:, 0], scene.size)
@@ -524,6 +531,9 @@ def build_model(scene: Scene, *, progress: bool = False) -> tuple[Model, BuildRe
         samples, sample, stencil, seeds, normals = _contact_candidates(scene, g, asm)
         report.contact_points = int(samples.rest.shape[0])
         say(f"jsnap: {report.contact_points} contact candidate points")
+        if s["method"] == "reduced":  # refused now, not after the SDF and the factorisations
+            need = max(b for b, _ in check_reduction(asm, seeds, sample, normals, scene))
+            say(f"jsnap: the reduction's largest arrays estimated at {need / 1e9:.2f} GB")
         rigid = _rigid_sdf(scene, g.rigid, report, progress)
         if report.sdf is not None:
             what = "loaded from" if report.sdf["cached"] else "trained, cached in"

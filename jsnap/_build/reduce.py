@@ -110,6 +110,8 @@ _JOINT = "shared interface coordinates"
 _TRUNCATION = "the whole part's static gain"
 # The settings that shrink the reduction's arrays, named when one would not fit in memory.
 _MESH_HINT = "a larger solver.mesh_size"
+# Those of the arrays that grow with the contact nodes and load cases.
+_CONTACT_HINT = "a larger solver.mesh_size (fewer contact nodes) or a larger contact.spacing (fewer load cases)"
 
 
 # --------------------------------------------------------------------------------------------
@@ -704,6 +706,47 @@ def _subspace_bytes(n_inner: int, s_max: int) -> int:
     orthonormalising and projecting make, and of the balancing's (s, s, 2, 2) complex Gramian
     terms (position_gramians), a few at once."""
     return 5 * 8 * n_inner * s_max + 4 * 64 * s_max**2
+
+
+def reduction_bytes(seg: Segmentation, n_contact_nodes: int, n_cases: int, n_modes: int) -> list:
+    """The reduction's largest allocations, estimated from the segmentation alone (before any
+    factorisation): ``(bytes, what)`` for the condensed stiffness of the contact and interface
+    dofs (:func:`interface_shapes`) and for the contact segment's balancing subspace with its
+    static correction (:func:`segment_basis`). Both grow with the contact nodes: a rigid part
+    that slides along a long face makes them large."""
+    gamma = np.unique(np.concatenate([seg.nodes[i][seg.interface_nodes(i)] for i in range(seg.n_segments)]))
+    m = 3 * (n_contact_nodes + gamma.size)
+    condensed = 8 * m * (5 * m + 4 * n_cases)
+    n_inner = 3 * (len(seg.nodes[0]) - len(seg.interface_nodes(0)))
+    s_max = min(n_modes, n_inner) + 3 * n_contact_nodes
+    # The subspace and its Gramians, then the static correction's (s, cases) solves and loads.
+    subspace = _subspace_bytes(n_inner, s_max) + 3 * 8 * s_max * n_cases
+    return [
+        (condensed, f"the condensed stiffness of the contact and interface dofs ({m} dof)"),
+        (subspace, f"the contact segment's balancing subspace ({n_inner} x {s_max}, {n_cases} load cases)"),
+    ]
+
+
+def check_reduction(asm: Assembly, seed_faces, sample, normals, scene) -> list[tuple[int, str]]:
+    """Refuse, in seconds, a reduced model whose build would not fit in memory: the estimates
+    of :func:`reduction_bytes` from the scene's segmentation and contact candidates, checked
+    before the candidates' SDF and the reduction's factorisations are made.
+
+    Raises:
+        BuildError: an estimate exceeds the memory this process can have, naming the setting.
+    """
+    s = scene["solver"]
+    seg = segment(asm, seed_faces, s["segment_margin"], s["segments"])
+    nodes, weights = (np.asarray(a) for a in sample)
+    n_contact = np.unique((asm.free[0::3] // 3)[nodes][weights != 0]).size  # as _contact_interp's
+    normals = np.asarray(normals, np.float64).reshape(nodes.shape[0], -1, 3)
+    # One case per point and normal, a repeated normal dropped (as _normal_loads does).
+    apart = np.linalg.norm(normals[:, 1:] - normals[:, :1], axis=2) > 1e-9
+    n_cases = nodes.shape[0] + int(np.sum(apart))
+    estimates = reduction_bytes(seg, n_contact, n_cases, s["subspace_modes"])
+    for need, what in estimates:
+        require(need, what, _CONTACT_HINT)
+    return estimates
 
 
 def segment_interior(blocks, lam0, mu0, rho0, gamma_local, psi, contact, n_modes: int) -> SegmentInterior:

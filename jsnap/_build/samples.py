@@ -22,10 +22,11 @@ from jsnap._geometry.size import STENCIL_SIDE, STENCIL_WIDTH
 
 __all__ = [
     "locate_on_faces",
+    "near_path",
     "reachable_faces",
     "section_samples",
-    "turned_samples",
     "surface_samples",
+    "turned_samples",
 ]
 
 
@@ -468,6 +469,67 @@ def surface_samples(mesh: TetMesh, lo, hi, direction, spacing: float, width_spac
     keep = keep[np.all((X[keep] >= lo) & (X[keep] <= hi), axis=1)]
     _, G = np.unique(G[keep], return_inverse=True)
     return X[keep], N[keep], C[keep], S[keep], G, O[keep]
+
+
+def _surface_points(vertices: np.ndarray, faces: np.ndarray, step: float) -> np.ndarray:
+    """Points covering every triangle of a surface, no point of it farther than ``step`` from
+    one of them (a barycentric grid of each triangle, as fine as its longest edge needs)."""
+    tri = np.asarray(vertices, np.float64)[np.asarray(faces)]
+    longest = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
+    out = [tri.reshape(-1, 3)]
+    for n in np.unique(np.ceil(longest / step).astype(int)):
+        if n < 2:
+            continue
+        i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
+        ok = i + j <= n
+        a, b = i[ok] / n, j[ok] / n
+        w = np.stack([1.0 - a - b, a, b], axis=1)  # (g, 3) barycentric weights
+        out.append(np.einsum("gk,tkd->tgd", w, tri[np.ceil(longest / step).astype(int) == n]).reshape(-1, 3))
+    return np.concatenate(out)
+
+
+def near_path(X: np.ndarray, vertices, faces, poses: np.ndarray, reach: float) -> np.ndarray:
+    """(P,) which points X (P, 3) the rigid part's surface (``vertices`` (v, 3) in its own frame,
+    triangles ``faces``) comes within ``reach`` of at some pose along its path (``poses`` (n, 3)
+    translations or (n, 7) translation and unit quaternion), mm.
+
+    A part that slides along the deformable part (a housing over a hook's prongs) reaches only
+    the faces it passes close to, while the box it sweeps can enclose the whole part: the points
+    of the faces far from every pose of its surface can never touch it. A point the rigid part
+    passes through is near its surface at some pose on the way in, so the distance needs no sign;
+    the poses are taken every ``reach / 4`` of travel and the surface is covered by points no
+    farther than ``reach / 8`` from any of it, and the test allows for both (a point is kept
+    within ``1.25 reach`` of a sample of the surface at a chosen pose).
+    """
+    from scipy.spatial import cKDTree
+
+    from jsnap._geometry.motion import quat_matrix
+
+    X = np.asarray(X, np.float64)
+    poses = np.asarray(poses, np.float64)
+    step = 0.125 * reach
+    tree = cKDTree(_surface_points(vertices, faces, step))
+    # Poses close enough together that a point's distance changes by under reach / 4 between two.
+    v = np.asarray(vertices, np.float64)
+    span = float(np.linalg.norm(np.ptp(v, axis=0)))
+    moves = np.linalg.norm(np.diff(poses[:, :3], axis=0), axis=1)
+    if poses.shape[1] == 7:
+        turns = 2 * np.arccos(np.clip(np.abs(np.sum(poses[1:, 3:] * poses[:-1, 3:], axis=1)), 0, 1))
+        moves = moves + turns * (span + float(np.max(np.linalg.norm(X - poses[0, :3], axis=1))))
+    travelled = np.r_[0.0, np.cumsum(moves)]
+    marks = np.unique(np.searchsorted(travelled, np.arange(0, travelled[-1] + step, 2 * step)))
+    chosen = poses[np.r_[marks[marks < len(poses)], len(poses) - 1]]
+    near = np.zeros(X.shape[0], bool)
+    limit = reach + 2 * step  # allowing for the surface's cover and the poses' spacing
+    for pose in chosen:
+        rel = X - pose[:3]
+        if poses.shape[1] == 7:
+            rel = rel @ quat_matrix(pose[3:])  # R' (x - t), row-wise
+        todo = ~near
+        if np.any(todo):
+            d, _ = tree.query(rel[todo], distance_upper_bound=limit)
+            near[np.flatnonzero(todo)[np.isfinite(d)]] = True
+    return near
 
 
 def line_reach(X: np.ndarray, group: np.ndarray, order: np.ndarray):
