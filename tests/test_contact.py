@@ -27,7 +27,7 @@ from jsnap._core.contact import (
     solve_spg,
     symmetric_squeeze_problem,
 )
-from jsnap._core.contact.algorithms import _spd_inverse
+from jsnap._core.contact.algorithms import _project_cone_split, _spd_inverse
 
 # Kernel tests in float64 (jsnap's scoped 64-bit mode, as its entry points use internally).
 pytestmark = pytest.mark.usefixtures("x64")
@@ -152,6 +152,7 @@ def test_project_cone_moreau(x, mu):
     scale = 1 + np.abs(x).max()
     eps = 1e-12 * scale
     assert np.all(np.linalg.norm(p[:, 1:], axis=1) <= mu * p[:, 0] + eps)
+    assert np.all(p[:, 0] >= -eps)  # F holds no pull, at mu = 0 too
     assert np.all(mu * np.linalg.norm(r[:, 1:], axis=1) <= -r[:, 0] + eps)
     assert np.all(np.abs(np.sum(p * r, axis=1)) <= 1e-12 * scale**2)
     np.testing.assert_allclose(np.asarray(_project(p, mu)), p, atol=eps)
@@ -166,7 +167,7 @@ def test_project_cone_moreau(x, mu):
 
 
 def test_project_cone_known_values():
-    mu = np.array([0.5, 0.5, 0.5, 0.0, 0.0, 1.0])
+    mu = np.array([0.5, 0.5, 0.5, 0.0, 0.0, 1.0, 0.0])
     x = np.array(
         [
             [2.0, 0.6, 0.8],  # inside (‖t‖ = 1 ≤ 1): kept
@@ -175,6 +176,7 @@ def test_project_cone_known_values():
             [1.5, 3.0, -1.0],  # μ = 0: normal half-line
             [-1.5, 3.0, -1.0],
             [0.0, 0.0, 0.0],  # apex
+            [-1.5, 0.0, 0.0],  # μ = 0, a pull with no tangential part (‖t‖ = 0 = μ n): apex
         ]
     )
     expect = np.array(
@@ -185,9 +187,13 @@ def test_project_cone_known_values():
             [1.5, 0.0, 0.0],
             [0.0, 0.0, 0.0],
             [0.0, 0.0, 0.0],
+            [0.0, 0.0, 0.0],
         ]
     )
     np.testing.assert_allclose(np.asarray(_project(x, mu)), expect, atol=1e-15)
+    # The split form the solvers' inner loops use (n, t1, t2 apart) agrees.
+    split = jax.jit(_project_cone_split)(*(jnp.asarray(x[:, k]) for k in range(3)), jnp.asarray(mu))
+    np.testing.assert_allclose(np.stack([np.asarray(a) for a in split], axis=1), expect, atol=1e-15)
 
 
 _JACOBIANS = [jax.jit(jac(project_cone, argnums=(0, 1))) for jac in (jax.jacfwd, jax.jacrev)]

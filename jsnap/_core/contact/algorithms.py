@@ -163,7 +163,8 @@ def project_cone(gamma, mu):
     n = gamma[..., 0]
     t = gamma[..., 1:]
     nt = safe_norm(t, axis=-1)
-    inside = nt <= mu * n
+    # n >= 0 as well: at mu = 0 a pull with no tangential part (0 <= mu * n = -0.0) would pass.
+    inside = (nt <= mu * n) & (n >= 0.0)
     to_apex = mu * nt <= -n
     n_surf = (n + mu * nt) / (1.0 + mu * mu)
     # On the surface branch ‖t‖ > 0 always (else the point is inside or in the polar cone), but
@@ -181,7 +182,7 @@ def _project_cone_split(n, t1, t2, mu):
     sq = t1 * t1 + t2 * t2
     ok = sq > 1e-30  # as safe_norm
     nt = jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
-    inside = nt <= mu * n
+    inside = (nt <= mu * n) & (n >= 0.0)  # as project_cone
     to_apex = mu * nt <= -n
     n_surf = (n + mu * nt) / (1.0 + mu * mu)
     scale = mu * n_surf / jnp.where(nt > 0, nt, 1.0)
