@@ -7,9 +7,10 @@ For each case, the scene at its element size and at 0.8 times it (``solver.mesh_
 rest of the scene as shipped) is built and rolled out, and the numbers ``jsnap simulate``
 reports are taken from the rollout:
 
-- the headline peak force (``jsnap._apps.simulate.peak_force``: the peak of the running median
-  over ``PEAK_FORCE_STEPS`` = 5 steps) against the largest single step, and for the record the
-  peaks of the 3-step running median and of the 5-step running mean;
+- the headline peak force (``jsnap._apps.simulate.peak_force``: each step's force counted up
+  to the Theil-Sen line through it and the steps before it, ``PEAK_FORCE_STEPS`` = 9 in all)
+  against the largest single step, and for the record the peaks of the 3-step running median
+  and of the 5-step running mean;
 - the bending strain (``jsnap._build.strain.bending_strain``, read in the wall of
   ``bending_wall``: the line fitted 1 to 3 walls from the singular edges, extrapolated to them,
   and the strain at least 1.5 walls from them; contacts left out) against the largest strain

@@ -148,9 +148,9 @@ def design_guide_force(scene) -> float | None:
 # sign where the set of active contact points changes (a point lets go for a step and comes
 # back, or enters deep and is pushed out within a step: an impulse put into one step and taken
 # back in the next); they change with the mesh where the curve does not. The line ignores up to
-# two of seven steps, and on a curve that is smooth over seven steps it runs through the step,
+# two of nine steps, and on a curve that is smooth over nine steps it runs through the step,
 # so the peak of a rising branch before a snap is kept as it is.
-PEAK_FORCE_STEPS = 7
+PEAK_FORCE_STEPS = 9
 
 
 def peak_force(force) -> tuple[float, int]:
