@@ -8,7 +8,8 @@ against friction on the barbs' normal force (the plateau while they slide) and a
 prongs' deflection force (a Timoshenko cantilever pushed in by the interference); and the
 forces at twice the Young's modulus (the same model, ``params.replace(E=2E)``), whose ratio to
 the scene's should be 2, and without friction, where the walls' normal forces have no
-component along the insertion and the plateau should vanish. Writes ``benchmarks/results/long_housing.{json,png}``.
+component along the insertion and the plateau should vanish.
+Writes ``benchmarks/results/long_housing.{json,png}``.
 
     python benchmarks/long_housing.py
 """

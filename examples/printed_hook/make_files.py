@@ -104,7 +104,7 @@ def write(folder, hook: dict | None = None, housing: dict | None = None) -> tupl
     h, s = {**HOOK, **(hook or {})}, {**HOUSING, **(housing or {})}
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    t, g, b = h["thickness"], h["gap"], h["width"]
+    t, b = h["thickness"], h["width"]
     xo = outer_face(h)
     initialized = gmsh.isInitialized()
     if not initialized:
