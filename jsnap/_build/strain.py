@@ -498,22 +498,38 @@ def scan(
         peak, step, element, position = where(r, "mp")
         vm_peak, vm_step, _, vm_position = where(r, "vm")
         peaks[r] = PeakStrain(
-            max_principal=peak,
-            step=step,
-            time=float(t[step]) if step >= 0 else np.nan,
-            element=element,
-            position=position,
-            von_mises=vm_peak,
-            von_mises_step=vm_step,
-            von_mises_position=vm_position,
-            history=hist[(r, "mp")][0],
-            von_mises_history=hist[(r, "vm")][0],
-            element_max_principal=el_mp,
-            element_von_mises=el_vm,
+            **_peak_fields(
+                t,
+                (peak, step, element, position, hist[(r, "mp")][0]),
+                (vm_peak, vm_step, vm_position, hist[(r, "vm")][0]),
+                el_mp,
+                el_vm,
+            )
         )
     if bending is not None:
         peaks["bending"] = _bending_peak(bending, bend, t, el_mp, el_vm)
     return peaks, kept
+
+
+def _peak_fields(t, mp, vm, el_mp, el_vm) -> dict:
+    """:class:`PeakStrain`'s fields from the largest principal strain's (value, step, element,
+    position, history) and the von Mises stress's (value, step, position, history)."""
+    peak, step, element, position, history = mp
+    vm_peak, vm_step, vm_position, vm_history = vm
+    return dict(
+        max_principal=peak,
+        step=step,
+        time=float(t[step]) if step >= 0 else np.nan,
+        element=element,
+        position=position,
+        von_mises=vm_peak,
+        von_mises_step=vm_step,
+        von_mises_position=vm_position,
+        history=history,
+        von_mises_history=vm_history,
+        element_max_principal=el_mp,
+        element_von_mises=el_vm,
+    )
 
 
 def peak_strain(model, result, *, params=None, elements=None) -> PeakStrain:
@@ -897,18 +913,13 @@ def _bending_peak(region: BendingRegion, bend: dict, t, el_mp, el_vm) -> Bending
     peak, step, element, position, at_edge, readout = where("mp")
     vm_peak, vm_step, _, vm_position, _, _ = where("vm")
     return BendingStrain(
-        max_principal=peak,
-        step=step,
-        time=float(t[step]) if step >= 0 else np.nan,
-        element=element,
-        position=position,
-        von_mises=vm_peak,
-        von_mises_step=vm_step,
-        von_mises_position=vm_position,
-        history=bend["mp"][0],
-        von_mises_history=bend["vm"][0],
-        element_max_principal=el_mp,
-        element_von_mises=el_vm,
+        **_peak_fields(
+            t,
+            (peak, step, element, position, bend["mp"][0]),
+            (vm_peak, vm_step, vm_position, bend["vm"][0]),
+            el_mp,
+            el_vm,
+        ),
         at_edge=at_edge,
         readout=readout,
         readout_distance=dist * region.wall,
