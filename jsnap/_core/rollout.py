@@ -166,6 +166,12 @@ def _check_jumps(model: Model, controls, plug_start, batched: bool = False) -> N
         leaves.append(plug_start)
     if any(isinstance(a, jax.core.Tracer) for a in leaves):
         return
+    # Inside a user's jit the model's properties (jnp slices of concrete leaves) would trace.
+    with jax.ensure_compile_time_eval():
+        _refuse_jumps(model, controls, plug_start, batched)
+
+
+def _refuse_jumps(model: Model, controls, plug_start, batched: bool) -> None:
     c = np.asarray(controls, np.float64).reshape(-1, *np.shape(controls)[-2:])  # (B, steps, 3 | 7)
     start = np.asarray(model.plug_start if plug_start is None else plug_start, np.float64).reshape(-1, 3)
     start = np.broadcast_to(start, (c.shape[0], 3))
