@@ -181,7 +181,10 @@ def test_a_dense_model_of_a_large_part_is_refused_before_assembly(monkeypatch):
             "solver.method": "full",
         }
     )
-    monkeypatch.setattr(memory, "available_memory", lambda: 16 * 2**30)
+    # 100 GiB: the estimate made before meshing (a lower bound, ~35k dofs, ~55 GiB) fits, so the
+    # count of the mesh itself refuses it. 16 GiB: refused before meshing, from the estimate.
+    for where in (memory, build_module):
+        monkeypatch.setattr(where, "available_memory", lambda: 100 * 2**30)
 
     def no_assembly(*a, **k):
         raise AssertionError("assembled before the memory check")
@@ -189,6 +192,11 @@ def test_a_dense_model_of_a_large_part_is_refused_before_assembly(monkeypatch):
     monkeypatch.setattr(build_module, "assemble", no_assembly)
     with pytest.raises(BuildError, match=r"solver\.method = 'full' with 58725 dof needs about 15\d\.\d GiB.*"
                        r"solver\.method = 'reduced'.*solver\.mesh_size"):  # fmt: skip
+        build_module.build_model(scene)
+    for where in (memory, build_module):
+        monkeypatch.setattr(where, "available_memory", lambda: 16 * 2**30)
+    before = r"estimated before meshing.*solver\.method = 'full'.*solver\.mesh_size"
+    with pytest.raises(BuildError, match=before):
         build_module.build_model(scene)
 
 
